@@ -1,0 +1,1 @@
+"""attitude-bridge service: MAVLink in, estimators, MAVLink/MQTT out, live comparison."""

@@ -1,0 +1,288 @@
+"""Compiled building blocks shared by every estimator.
+
+Each estimator writes one numba function, its ``step``::
+
+    step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt) -> None
+
+that advances ``state`` by one sample *after* the common checks done here: sample
+validation, ``dt`` checks, initialisation from the first usable sample, counting, and
+output in the requested world frame. ``make_kernels(step)`` closes over it and returns
+``update_one`` (one sample, called by ``Estimator.update``) and ``run_batch`` (a
+compiled loop, called by ``batch``). Both run the very same code per sample, which is
+why ``batch`` equals ``update`` bit for bit.
+
+Internally every estimator works in NED (gravity reference ``[0, 0, -1]`` for the
+accelerometer's specific force direction, magnetic north along +x); ENU is a fixed
+left-multiplication applied on output.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# --- state vector layout (float64), shared by all estimators -------------------
+Q0, Q1, Q2, Q3 = 0, 1, 2, 3  # attitude, body -> NED
+B0 = 4  # gyro bias estimate [rad/s] in state[4:7] (zeros when not estimated)
+INIT = 7  # 1.0 once initialised
+ACC_REJ = 8  # 1.0 when the last sample's accelerometer was rejected as disturbed
+MAG_REJ = 9  # 1.0 when the last sample's magnetometer was rejected as disturbed
+PRIVATE = 10  # first index an estimator may use for its own state
+
+# --- counters (int64) ---------------------------------------------------------
+C_SAMPLES = 0  # samples offered
+C_SKIPPED = 1  # samples not used at all (gyro non-finite or bad dt)
+C_BAD_DT = 2  # of those: dt non-finite, <= 0 or > max_dt
+C_ACC_UNUSABLE = 3  # accelerometer NaN/inf, zero-norm or saturated (gyro still used)
+C_MAG_UNUSABLE = 4  # magnetometer given but NaN/inf or zero-norm
+C_ACC_REJECTED = 5  # usable but rejected by the estimator as non-gravitational
+C_MAG_REJECTED = 6  # usable but rejected by the estimator as disturbed
+C_GYR_SATURATED = 7  # gyro at full scale (still integrated: it is the best we have)
+N_COUNTERS = 8
+COUNTER_NAMES = (
+    "samples", "skipped", "bad_dt", "acc_unusable", "mag_unusable",
+    "acc_rejected", "mag_rejected", "gyr_saturated",
+)
+
+# --- common parameter vector (float64) --------------------------------------------
+P_ACC_RANGE = 0  # full scale [m/s^2]: an axis at >= 99.9 % of it is saturated
+P_GYR_RANGE = 1  # full scale [rad/s]
+P_MAX_DT = 2  # longest usable step [s]
+P_ENU = 3  # 1.0: output in ENU
+N_COMMON = 4
+
+# --- per-sample flags written by run_batch (bit field, uint8) -----------------------
+F_INITIALISED = 1
+F_ACC_REJECTED = 2
+F_MAG_REJECTED = 4
+F_SKIPPED = 8
+F_ACC_UNUSABLE = 16
+
+_SAT_FRACTION = 0.999
+_ACC_MIN_NORM = 1e-3  # m/s^2: below this the direction of gravity is meaningless
+_HALF_SQRT2 = math.sqrt(0.5)
+
+
+@njit(cache=True, inline="always")
+def finite3(x: float, y: float, z: float) -> bool:
+    return math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
+
+
+@njit(cache=True, inline="always")
+def acc_usable(ax: float, ay: float, az: float, acc_range: float) -> bool:
+    """Finite, not ~zero, and no axis clipped at full scale."""
+    if not finite3(ax, ay, az):
+        return False
+    lim = _SAT_FRACTION * acc_range
+    if abs(ax) >= lim or abs(ay) >= lim or abs(az) >= lim:
+        return False
+    return ax * ax + ay * ay + az * az > _ACC_MIN_NORM * _ACC_MIN_NORM
+
+
+@njit(cache=True, inline="always")
+def mag_usable(mx: float, my: float, mz: float) -> bool:
+    """Finite and non-zero (units are free, only the direction matters)."""
+    return finite3(mx, my, mz) and mx * mx + my * my + mz * mz > 1e-24
+
+
+@njit(cache=True)
+def normalize_q(state: np.ndarray) -> None:
+    """Renormalise state[0:4]; an unrecoverable quaternion resets to identity."""
+    n = math.sqrt(state[0] ** 2 + state[1] ** 2 + state[2] ** 2 + state[3] ** 2)
+    if n > 1e-12 and math.isfinite(n):
+        state[0] /= n
+        state[1] /= n
+        state[2] /= n
+        state[3] /= n
+    else:
+        state[0], state[1], state[2], state[3] = 1.0, 0.0, 0.0, 0.0
+
+
+@njit(cache=True)
+def integrate_first_order(state: np.ndarray, wx: float, wy: float, wz: float,
+                          dt: float) -> None:
+    """q += 0.5 · q ⊗ [0, w] · dt, then normalise (the seeds' first-order Runge-Kutta)."""
+    h = 0.5 * dt
+    w, x, y, z = state[0], state[1], state[2], state[3]
+    state[0] = w + (-x * wx - y * wy - z * wz) * h
+    state[1] = x + (w * wx + y * wz - z * wy) * h
+    state[2] = y + (w * wy - x * wz + z * wx) * h
+    state[3] = z + (w * wz + x * wy - y * wx) * h
+    normalize_q(state)
+
+
+@njit(cache=True)
+def integrate_exact(state: np.ndarray, wx: float, wy: float, wz: float, dt: float) -> None:
+    """q ← q ⊗ exp(w·dt/2): exact for a rate constant over the step, then normalise."""
+    angle = math.sqrt(wx * wx + wy * wy + wz * wz) * dt
+    half = 0.5 * angle
+    if angle < 1e-6:
+        k = 0.5 * dt * (1.0 - angle * angle / 24.0)
+        c = 1.0 - half * half / 2.0
+    else:
+        k = math.sin(half) / angle * dt
+        c = math.cos(half)
+    dx, dy, dz = wx * k, wy * k, wz * k
+    w, x, y, z = state[0], state[1], state[2], state[3]
+    state[0] = w * c - x * dx - y * dy - z * dz
+    state[1] = w * dx + x * c + y * dz - z * dy
+    state[2] = w * dy - x * dz + y * c + z * dx
+    state[3] = w * dz + x * dy - y * dx + z * c
+    normalize_q(state)
+
+
+@njit(cache=True)
+def body_to_world(state: np.ndarray, vx: float, vy: float, vz: float) -> tuple:
+    """R(q) · v for the attitude in state[0:4]."""
+    w, x, y, z = state[0], state[1], state[2], state[3]
+    return (
+        (1 - 2 * (y * y + z * z)) * vx + 2 * (x * y - w * z) * vy + 2 * (x * z + w * y) * vz,
+        2 * (x * y + w * z) * vx + (1 - 2 * (x * x + z * z)) * vy + 2 * (y * z - w * x) * vz,
+        2 * (x * z - w * y) * vx + 2 * (y * z + w * x) * vy + (1 - 2 * (x * x + y * y)) * vz,
+    )
+
+
+@njit(cache=True)
+def world_to_body(state: np.ndarray, vx: float, vy: float, vz: float) -> tuple:
+    """R(q)ᵀ · v for the attitude in state[0:4]."""
+    w, x, y, z = state[0], state[1], state[2], state[3]
+    return (
+        (1 - 2 * (y * y + z * z)) * vx + 2 * (x * y + w * z) * vy + 2 * (x * z - w * y) * vz,
+        2 * (x * y - w * z) * vx + (1 - 2 * (x * x + z * z)) * vy + 2 * (y * z + w * x) * vz,
+        2 * (x * z + w * y) * vx + 2 * (y * z - w * x) * vy + (1 - 2 * (x * x + y * y)) * vz,
+    )
+
+
+@njit(cache=True)
+def set_q_from_dcm(state: np.ndarray, r00: float, r01: float, r02: float, r10: float,
+                   r11: float, r12: float, r20: float, r21: float, r22: float) -> None:
+    """state[0:4] ← quaternion of the rotation matrix R (Shepperd's method)."""
+    tr = r00 + r11 + r22
+    if tr >= r00 and tr >= r11 and tr >= r22:
+        s = 2.0 * math.sqrt(1.0 + tr)
+        state[0], state[1] = 0.25 * s, (r21 - r12) / s
+        state[2], state[3] = (r02 - r20) / s, (r10 - r01) / s
+    elif r00 >= r11 and r00 >= r22:
+        s = 2.0 * math.sqrt(1.0 + r00 - r11 - r22)
+        state[0], state[1] = (r21 - r12) / s, 0.25 * s
+        state[2], state[3] = (r01 + r10) / s, (r02 + r20) / s
+    elif r11 >= r22:
+        s = 2.0 * math.sqrt(1.0 + r11 - r00 - r22)
+        state[0], state[1] = (r02 - r20) / s, (r01 + r10) / s
+        state[2], state[3] = 0.25 * s, (r12 + r21) / s
+    else:
+        s = 2.0 * math.sqrt(1.0 + r22 - r00 - r11)
+        state[0], state[1] = (r10 - r01) / s, (r02 + r20) / s
+        state[2], state[3] = (r12 + r21) / s, 0.25 * s
+    if state[0] < 0.0:
+        for i in range(4):
+            state[i] = -state[i]
+    normalize_q(state)
+
+
+@njit(cache=True)
+def init_from_acc_mag(state: np.ndarray, ax: float, ay: float, az: float, mx: float,
+                      my: float, mz: float, use_mag: bool) -> None:
+    """Attitude from one sample: down = -acc; north from the magnetometer, else yaw 0."""
+    na = math.sqrt(ax * ax + ay * ay + az * az)
+    dx, dy, dz = -ax / na, -ay / na, -az / na
+    rx, ry, rz = (mx, my, mz) if use_mag else (1.0, 0.0, 0.0)
+    ex, ey, ez = dy * rz - dz * ry, dz * rx - dx * rz, dx * ry - dy * rx
+    ne = math.sqrt(ex * ex + ey * ey + ez * ez)
+    if ne < 1e-6 * math.sqrt(rx * rx + ry * ry + rz * rz):
+        # Reference parallel to gravity: take the heading from body y instead.
+        ex, ey, ez = -dz, 0.0, dx
+        ne = math.sqrt(ex * ex + ez * ez)
+    ex, ey, ez = ex / ne, ey / ne, ez / ne
+    nx, ny, nz = ey * dz - ez * dy, ez * dx - ex * dz, ex * dy - ey * dx
+    # Rows of R_world<-body are the world axes (north, east, down) in body coordinates.
+    set_q_from_dcm(state, nx, ny, nz, ex, ey, ez, dx, dy, dz)
+
+
+@njit(cache=True)
+def write_output(state: np.ndarray, enu: bool, out: np.ndarray) -> None:
+    """out ← attitude in the requested world frame (NED internally)."""
+    w, x, y, z = state[0], state[1], state[2], state[3]
+    if enu:
+        # Q_NED_ENU ⊗ q with Q_NED_ENU = [0, s, s, 0], s = sqrt(1/2)
+        s = _HALF_SQRT2
+        out[0] = s * (-x - y)
+        out[1] = s * (w + z)
+        out[2] = s * (w - z)
+        out[3] = s * (y - x)
+    else:
+        out[0], out[1], out[2], out[3] = w, x, y, z
+
+
+def make_kernels(step):
+    """Build the compiled single-sample and batch drivers around an estimator's step.
+
+    ``step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt)``
+    takes scalars: array views would cost a reference-count round trip per sample.
+    """
+
+    @njit(cache=True, inline="always")
+    def process(state, params, common, gx, gy, gz, ax, ay, az, mx, my, mz, has_mag, dt,
+                counters) -> int:
+        """One sample with the common checks; returns the F_* flags of this sample."""
+        counters[C_SAMPLES] += 1
+        initialised = F_INITIALISED if state[INIT] > 0.0 else 0
+        if not finite3(gx, gy, gz):
+            counters[C_SKIPPED] += 1
+            return F_SKIPPED | initialised
+        if not (dt > 0.0 and dt <= common[P_MAX_DT]):
+            counters[C_SKIPPED] += 1
+            counters[C_BAD_DT] += 1
+            return F_SKIPPED | initialised
+        flags = 0
+        acc_ok = acc_usable(ax, ay, az, common[P_ACC_RANGE])
+        if not acc_ok:
+            counters[C_ACC_UNUSABLE] += 1
+            flags |= F_ACC_UNUSABLE
+        mag_ok = False
+        if has_mag:
+            mag_ok = mag_usable(mx, my, mz)
+            if not mag_ok:
+                counters[C_MAG_UNUSABLE] += 1
+        glim = _SAT_FRACTION * common[P_GYR_RANGE]
+        if abs(gx) >= glim or abs(gy) >= glim or abs(gz) >= glim:
+            counters[C_GYR_SATURATED] += 1
+        if not initialised:
+            if not acc_ok:
+                return flags  # nothing to anchor the attitude to yet
+            init_from_acc_mag(state, ax, ay, az, mx, my, mz, mag_ok)
+            state[INIT] = 1.0
+            return flags | F_INITIALISED
+        step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt)
+        if state[ACC_REJ] > 0.0:
+            counters[C_ACC_REJECTED] += 1
+            flags |= F_ACC_REJECTED
+        if state[MAG_REJ] > 0.0:
+            counters[C_MAG_REJECTED] += 1
+            flags |= F_MAG_REJECTED
+        return flags | F_INITIALISED
+
+    @njit(cache=True)
+    def update_one(state, params, common, g, a, m, has_mag, dt, counters, out) -> int:
+        flags = process(state, params, common, g[0], g[1], g[2], a[0], a[1], a[2],
+                        m[0], m[1], m[2], has_mag, dt, counters)
+        write_output(state, common[P_ENU] > 0.0, out)
+        return flags
+
+    @njit(cache=True)
+    def run_batch(state, params, common, G, A, M, has_mag, dts, counters,
+                  Q, B, F) -> None:
+        enu = common[P_ENU] > 0.0
+        single_dt = dts.shape[0] == 1
+        for i in range(G.shape[0]):
+            dt = dts[0] if single_dt else dts[i]
+            j = i if has_mag else 0
+            F[i] = process(state, params, common, G[i, 0], G[i, 1], G[i, 2],
+                           A[i, 0], A[i, 1], A[i, 2], M[j, 0], M[j, 1], M[j, 2],
+                           has_mag, dt, counters)
+            write_output(state, enu, Q[i])
+            B[i, 0], B[i, 1], B[i, 2] = state[B0], state[B0 + 1], state[B0 + 2]
+
+    return update_one, run_batch

@@ -1,0 +1,255 @@
+"""The one small interface every estimator implements.
+
+A concrete estimator supplies:
+
+* ``name`` (the registry key) and ``Params``, a frozen dataclass deriving from
+  :class:`CommonParams` whose fields are the tunable parameters with their defaults
+  (each field's ``metadata["doc"]`` says its unit and meaning);
+* ``_pack_params(p) -> np.ndarray``: the parameters as a float64 vector for the kernel;
+* ``_state_size`` and optionally ``_init_private(state, p)``;
+* ``_update_one`` / ``_run_batch``: the pair returned by ``_core.make_kernels(step)``.
+
+Everything else (argument checking, sample validation, counting, initialisation,
+world frame, batch) lives here and in ``_core`` so that all estimators behave alike.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from . import _core
+from . import quat as Q
+
+G = 9.80665
+
+
+def param(default: float, doc: str) -> Any:
+    """A dataclass field for an estimator parameter, with its unit/meaning in ``doc``."""
+    return field(default=default, metadata={"doc": doc})
+
+
+@dataclass(frozen=True)
+class CommonParams:
+    """Sensor limits shared by every estimator (samples beyond them are not trusted)."""
+
+    acc_range: float = param(16 * G, "accelerometer full scale [m/s^2]; an axis at it is "
+                                     "saturated and the sample's accelerometer is unused")
+    gyr_range: float = param(math.radians(2000.0), "gyro full scale [rad/s]; saturation is "
+                                                   "counted (the clipped rate still integrates)")
+    max_dt: float = param(0.5, "longest usable time step [s]; longer gaps are skipped")
+
+
+@dataclass(frozen=True)
+class SampleCounters:
+    """How many samples were offered, and what was skipped, unusable or rejected."""
+
+    samples: int = 0
+    skipped: int = 0
+    bad_dt: int = 0
+    acc_unusable: int = 0
+    mag_unusable: int = 0
+    acc_rejected: int = 0
+    mag_rejected: int = 0
+    gyr_saturated: int = 0
+
+
+@dataclass(frozen=True)
+class EstimatorStatus:
+    """A snapshot of an estimator's internal state, for telemetry and debugging."""
+
+    q: np.ndarray  # [w, x, y, z], body -> requested world frame
+    bias: np.ndarray  # gyro bias estimate [rad/s] (zeros if the estimator has none)
+    initialising: bool  # True until the first usable accelerometer sample
+    acc_rejected: bool  # last sample's accelerometer judged non-gravitational
+    mag_rejected: bool  # last sample's magnetometer judged disturbed
+    counters: SampleCounters
+
+
+@dataclass(frozen=True)
+class BatchResult:
+    """Per-sample output of a batch run."""
+
+    q: np.ndarray  # (N, 4)
+    bias: np.ndarray  # (N, 3)
+    flags: np.ndarray  # (N,) uint8, bits _core.F_*
+
+    @property
+    def initialised(self) -> np.ndarray:
+        return (self.flags & _core.F_INITIALISED) != 0
+
+    @property
+    def acc_rejected(self) -> np.ndarray:
+        return (self.flags & _core.F_ACC_REJECTED) != 0
+
+    @property
+    def mag_rejected(self) -> np.ndarray:
+        return (self.flags & _core.F_MAG_REJECTED) != 0
+
+    @property
+    def skipped(self) -> np.ndarray:
+        return (self.flags & _core.F_SKIPPED) != 0
+
+
+class Estimator:
+    """Base class: attitude from gyro + accelerometer (+ magnetometer) samples."""
+
+    name: ClassVar[str] = ""
+    Params: ClassVar[type[CommonParams]] = CommonParams
+    _state_size: ClassVar[int] = _core.PRIVATE
+    # Set by subclasses from _core.make_kernels(step); staticmethod-wrapped.
+    _update_one: ClassVar[Any]
+    _run_batch: ClassVar[Any]
+
+    def __init__(self, rate_hz: float = 1000.0, world: str = "NED",
+                 q0: np.ndarray | None = None, **params: float) -> None:
+        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
+            raise ValueError(f"rate_hz must be a positive number, got {rate_hz!r}")
+        self.rate_hz = float(rate_hz)
+        self.world = "ENU" if Q.world_is_enu(world) else "NED"
+        self.params = self.make_params(**params)
+        self._params_vec = np.ascontiguousarray(self._pack_params(self.params), dtype=float)
+        self._common = np.array([self.params.acc_range, self.params.gyr_range,
+                                 self.params.max_dt, 1.0 if self.world == "ENU" else 0.0])
+        self._q0 = None if q0 is None else np.array(q0, dtype=float)
+        self._out = np.empty(4)
+        self._no_mag = np.zeros(3)
+        self.reset()
+
+    # --- parameters ----------------------------------------------------------------
+    @classmethod
+    def param_names(cls) -> list[str]:
+        return [f.name for f in dataclasses.fields(cls.Params)]
+
+    @classmethod
+    def param_docs(cls) -> dict[str, str]:
+        """Parameter name -> 'default; doc' (for CLI help and the README)."""
+        return {f.name: f"{f.default!r}; {f.metadata.get('doc', '')}"
+                for f in dataclasses.fields(cls.Params)}
+
+    @classmethod
+    def make_params(cls, **params: float) -> CommonParams:
+        unknown = sorted(set(params) - set(cls.param_names()))
+        if unknown:
+            raise ValueError(f"unknown parameter(s) {unknown} for estimator {cls.name!r}; "
+                             f"valid: {cls.param_names()}")
+        for key, value in params.items():
+            if not isinstance(value, int | float | bool | np.number) or (
+                    isinstance(value, float) and math.isnan(value)):
+                raise ValueError(f"parameter {key!r} must be a number, got {value!r}")
+        return cls.Params(**params)
+
+    def _pack_params(self, p: CommonParams) -> np.ndarray:
+        return np.zeros(1)
+
+    def _init_private(self, state: np.ndarray, p: CommonParams) -> None:
+        """Initialise state[PRIVATE:] (covariances, integrators)."""
+
+    # --- state -----------------------------------------------------------------------
+    def reset(self, q0: np.ndarray | None = None) -> None:
+        """Forget everything; start from ``q0`` (world frame) or the next usable sample."""
+        if q0 is not None:
+            self._q0 = np.array(q0, dtype=float)
+        state = np.zeros(self._state_size)
+        state[0] = 1.0
+        if self._q0 is not None:
+            q = Q.normalize(self._q0)
+            if q.shape != (4,) or not np.all(np.isfinite(q)):
+                raise ValueError(f"q0 must be a finite non-zero quaternion, got {self._q0!r}")
+            state[0:4] = Q.enu_to_ned(q) if self.world == "ENU" else q
+            state[_core.INIT] = 1.0
+        self._init_private(state, self.params)
+        self._state = state
+        self._counters = np.zeros(_core.N_COUNTERS, dtype=np.int64)
+        self._last_flags = 0
+
+    @property
+    def q(self) -> np.ndarray:
+        """Current attitude [w, x, y, z], body -> world."""
+        type(self)._write_output(self._state, self.world == "ENU", self._out)
+        return self._out.copy()
+
+    @property
+    def bias(self) -> np.ndarray:
+        """Current gyro-bias estimate [rad/s] (zeros if the estimator has none)."""
+        return self._state[_core.B0:_core.B0 + 3].copy()
+
+    @property
+    def counters(self) -> SampleCounters:
+        return SampleCounters(*(int(c) for c in self._counters))
+
+    @property
+    def status(self) -> EstimatorStatus:
+        return EstimatorStatus(
+            q=self.q, bias=self.bias,
+            initialising=self._state[_core.INIT] <= 0.0,
+            acc_rejected=bool(self._last_flags & _core.F_ACC_REJECTED),
+            mag_rejected=bool(self._last_flags & _core.F_MAG_REJECTED),
+            counters=self.counters,
+        )
+
+    # --- estimation --------------------------------------------------------------------
+    def update(self, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None = None,
+               dt: float | None = None) -> np.ndarray:
+        """Advance by one sample and return the attitude [w, x, y, z] (a new array).
+
+        ``gyr`` rad/s, ``acc`` m/s^2 (specific force), ``mag`` any unit or None, ``dt``
+        seconds since the previous sample (default ``1/rate_hz``). Bad samples are counted
+        in ``counters``, never raised: a sensor stream must not crash the caller.
+        """
+        g = np.asarray(gyr, dtype=np.float64)
+        a = np.asarray(acc, dtype=np.float64)
+        if g.shape != (3,) or a.shape != (3,):
+            raise ValueError(f"gyr and acc must have shape (3,), got {g.shape} and {a.shape}")
+        if mag is None:
+            m, has_mag = self._no_mag, False
+        else:
+            m = np.asarray(mag, dtype=np.float64)
+            if m.shape != (3,):
+                raise ValueError(f"mag must have shape (3,), got {m.shape}")
+            has_mag = True
+        step_dt = 1.0 / self.rate_hz if dt is None else float(dt)
+        self._last_flags = type(self)._update_one(
+            self._state, self._params_vec, self._common, g, a, m, has_mag, step_dt,
+            self._counters, self._out)
+        return self._out.copy()
+
+    def run(self, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None = None,
+            dt: float | np.ndarray | None = None) -> BatchResult:
+        """Process (N, 3) arrays in a compiled loop, continuing from the current state.
+
+        ``dt`` is a scalar, an (N,) array of per-sample steps, or None for ``1/rate_hz``.
+        Gives the same quaternions as calling ``update`` N times.
+        """
+        G_ = np.ascontiguousarray(gyr, dtype=np.float64)
+        A_ = np.ascontiguousarray(acc, dtype=np.float64)
+        n = G_.shape[0]
+        if G_.ndim != 2 or G_.shape[1] != 3 or A_.shape != G_.shape:
+            raise ValueError(f"gyr and acc must both be (N, 3), got {G_.shape} and {A_.shape}")
+        if mag is None:
+            M_, has_mag = np.zeros((1, 3)), False
+        else:
+            M_ = np.ascontiguousarray(mag, dtype=np.float64)
+            if M_.shape != G_.shape:
+                raise ValueError(f"mag must be (N, 3) like gyr, got {M_.shape}")
+            has_mag = True
+        if dt is None:
+            dts = np.array([1.0 / self.rate_hz])
+        else:
+            dts = np.ascontiguousarray(np.atleast_1d(np.asarray(dt, dtype=np.float64)))
+            if dts.shape not in ((1,), (n,)):
+                raise ValueError(f"dt must be a scalar or shape ({n},), got {dts.shape}")
+        q_out = np.empty((n, 4))
+        b_out = np.empty((n, 3))
+        f_out = np.zeros(n, dtype=np.uint8)
+        if n:
+            type(self)._run_batch(self._state, self._params_vec, self._common, G_, A_, M_,
+                                  has_mag, dts, self._counters, q_out, b_out, f_out)
+            self._last_flags = int(f_out[-1])
+        return BatchResult(q=q_out, bias=b_out, flags=f_out)
+
+    _write_output = staticmethod(_core.write_output)

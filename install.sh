@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Installs attitude-bridge with its test tools into the current Python environment,
+# plus mosquitto (the MQTT broker the integration tests start) from Debian when root.
+set -euo pipefail
+cd "$(dirname "$0")"
+if ! command -v mosquitto >/dev/null 2>&1 && [ ! -x /usr/sbin/mosquitto ]; then
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+        apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mosquitto >/dev/null
+        # The package may start a system broker on 1883; the tests start their own.
+        (service mosquitto stop || true) >/dev/null 2>&1
+    else
+        echo "install.sh: mosquitto not found; install it (e.g. apt-get install mosquitto)" >&2
+    fi
+fi
+python -m pip install -q --upgrade pip
+python -m pip install -q -e ".[test]"

@@ -15,6 +15,8 @@ from collections.abc import Sequence
 # Modules providing sub-commands, in the order `--help` lists them.
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "estimators.cli",
+    "hil.cli",
+    "replay.cli",
 )
 
 

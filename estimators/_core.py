@@ -7,9 +7,9 @@ Each estimator writes one numba function, its ``step``::
 that advances ``state`` by one sample *after* the common checks done here: sample
 validation, ``dt`` checks, initialisation from the first usable sample, counting, and
 output in the requested world frame. ``make_kernels(step)`` closes over it and returns
-``update_one`` (one sample, called by ``Estimator.update``) and ``run_batch`` (a
-compiled loop, called by ``batch``). Both run the very same code per sample, which is
-why ``batch`` equals ``update`` bit for bit.
+``update_one`` (one sample on a packed workspace, called by ``Estimator.update``) and
+``run_batch`` (a compiled loop, called by ``batch``). Both run the very same code per
+sample, which is why ``batch`` equals ``update`` bit for bit.
 
 Internally every estimator works in NED (gravity reference ``[0, 0, -1]`` for the
 accelerometer's specific force direction, magnetic north along +x); ENU is a fixed
@@ -18,10 +18,14 @@ left-multiplication applied on output.
 
 from __future__ import annotations
 
+import hashlib
+import inspect
 import math
+from pathlib import Path
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.core.caching import FunctionCache
 
 # --- state vector layout (float64), shared by all estimators -------------------
 Q0, Q1, Q2, Q3 = 0, 1, 2, 3  # attitude, body -> NED
@@ -31,7 +35,7 @@ ACC_REJ = 8  # 1.0 when the last sample's accelerometer was rejected as disturbe
 MAG_REJ = 9  # 1.0 when the last sample's magnetometer was rejected as disturbed
 PRIVATE = 10  # first index an estimator may use for its own state
 
-# --- counters (int64) ---------------------------------------------------------
+# --- counters (float64 slots of the workspace: whole numbers, exact below 2**53) ------
 C_SAMPLES = 0  # samples offered
 C_SKIPPED = 1  # samples not used at all (gyro non-finite or bad dt)
 C_BAD_DT = 2  # of those: dt non-finite, <= 0 or > max_dt
@@ -52,6 +56,15 @@ P_GYR_RANGE = 1  # full scale [rad/s]
 P_MAX_DT = 2  # longest usable step [s]
 P_ENU = 3  # 1.0: output in ENU
 N_COMMON = 4
+
+# --- per-estimator workspace (float64) for update_one ------------------------------
+# ws = [header | state | params | common | counters | out(4)]; the header holds where
+# each section ends, so one compiled driver serves every estimator's sizes. Packing the
+# per-call arrays into one buffer keeps a Python -> numba call at three array arguments:
+# argument unboxing, not the filter arithmetic, is most of the per-sample cost.
+W_STATE_END, W_PARAMS_END, W_COMMON_END, W_COUNTERS_END = 0, 1, 2, 3
+W_HEADER = 4
+W_OUT = 4  # output quaternion length at the end
 
 # --- per-sample flags written by run_batch (bit field, uint8) -----------------------
 F_INITIALISED = 1
@@ -216,14 +229,60 @@ def write_output(state: np.ndarray, enu: bool, out: np.ndarray) -> None:
         out[0], out[1], out[2], out[3] = w, x, y, z
 
 
+_VEC = types.float64[::1]
+# update_one's only signatures (see prepare_update): anything else (lists, other
+# dtypes, strided views) raises TypeError; Estimator.update then converts and retries.
+_UPDATE_SIGNATURES = [types.int64(_VEC, _VEC, _VEC, types.none, types.float64),
+                      types.int64(_VEC, _VEC, _VEC, _VEC, types.float64)]
+
+
+def make_workspace(state_size: int, params: np.ndarray, common: np.ndarray) -> np.ndarray:
+    """A zeroed workspace for update_one with ``params`` and ``common`` filled in."""
+    s_end = W_HEADER + state_size
+    p_end = s_end + params.shape[0]
+    c_end = p_end + common.shape[0]
+    n_end = c_end + N_COUNTERS
+    ws = np.zeros(n_end + W_OUT)
+    ws[W_STATE_END], ws[W_PARAMS_END], ws[W_COMMON_END], ws[W_COUNTERS_END] = (
+        s_end, p_end, c_end, n_end)
+    ws[s_end:p_end] = params
+    ws[p_end:c_end] = common
+    return ws
+
+
+def workspace_views(ws: np.ndarray) -> tuple:
+    """(state, params, common, counters, out): views sharing the workspace's memory."""
+    s_end, p_end, c_end, n_end = (int(ws[i]) for i in (W_STATE_END, W_PARAMS_END,
+                                                        W_COMMON_END, W_COUNTERS_END))
+    return (ws[W_HEADER:s_end], ws[s_end:p_end], ws[p_end:c_end], ws[c_end:n_end],
+            ws[n_end:n_end + W_OUT])
+
+
+@njit(cache=True, inline="always")
+def write_output_row(state: np.ndarray, enu: bool, Q: np.ndarray, i: int) -> None:
+    """Q[i] ← write_output, without a row view (whose reference counting costs more
+    than the arithmetic in a batch loop)."""
+    w, x, y, z = state[0], state[1], state[2], state[3]
+    if enu:
+        s = _HALF_SQRT2
+        Q[i, 0], Q[i, 1], Q[i, 2], Q[i, 3] = s * (-x - y), s * (w + z), s * (w - z), s * (y - x)
+    else:
+        Q[i, 0], Q[i, 1], Q[i, 2], Q[i, 3] = w, x, y, z
+
+
 def make_kernels(step):
     """Build the compiled single-sample and batch drivers around an estimator's step.
 
     ``step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt)``
     takes scalars: array views would cost a reference-count round trip per sample.
-    """
 
-    @njit(cache=True, inline="always")
+    The step is inlined into the drivers (numba IR inlining): a call passing two arrays
+    and twelve scalars per sample cost more than most filters' arithmetic. The drivers
+    are cached on disk keyed by the step's source file (see _StepKeyedCache).
+    """
+    step = njit(inline="always")(getattr(step, "py_func", step))
+
+    @njit(inline="always")
     def process(state, params, common, gx, gy, gz, ax, ay, az, mx, my, mz, has_mag, dt,
                 counters) -> int:
         """One sample with the common checks; returns the F_* flags of this sample."""
@@ -264,14 +323,25 @@ def make_kernels(step):
             flags |= F_MAG_REJECTED
         return flags | F_INITIALISED
 
-    @njit(cache=True)
-    def update_one(state, params, common, g, a, m, has_mag, dt, counters, out) -> int:
-        flags = process(state, params, common, g[0], g[1], g[2], a[0], a[1], a[2],
-                        m[0], m[1], m[2], has_mag, dt, counters)
-        write_output(state, common[P_ENU] > 0.0, out)
+    def update_one(ws, g, a, m, dt) -> int:
+        """One sample on a workspace (see make_workspace); -1 if a vector is not (3,)."""
+        if g.shape[0] != 3 or a.shape[0] != 3:
+            return -1
+        s_end, p_end = int(ws[W_STATE_END]), int(ws[W_PARAMS_END])
+        c_end, n_end = int(ws[W_COMMON_END]), int(ws[W_COUNTERS_END])
+        state, params, common = ws[W_HEADER:s_end], ws[s_end:p_end], ws[p_end:c_end]
+        counters = ws[c_end:n_end]
+        if m is None:
+            flags = process(state, params, common, g[0], g[1], g[2], a[0], a[1], a[2],
+                            0.0, 0.0, 0.0, False, dt, counters)
+        else:
+            if m.shape[0] != 3:
+                return -1
+            flags = process(state, params, common, g[0], g[1], g[2], a[0], a[1], a[2],
+                            m[0], m[1], m[2], True, dt, counters)
+        write_output(state, common[P_ENU] > 0.0, ws[n_end:n_end + W_OUT])
         return flags
 
-    @njit(cache=True)
     def run_batch(state, params, common, G, A, M, has_mag, dts, counters,
                   Q, B, F) -> None:
         enu = common[P_ENU] > 0.0
@@ -282,7 +352,50 @@ def make_kernels(step):
             F[i] = process(state, params, common, G[i, 0], G[i, 1], G[i, 2],
                            A[i, 0], A[i, 1], A[i, 2], M[j, 0], M[j, 1], M[j, 2],
                            has_mag, dt, counters)
-            write_output(state, enu, Q[i])
+            write_output_row(state, enu, Q, i)
             B[i, 0], B[i, 1], B[i, 2] = state[B0], state[B0 + 1], state[B0 + 2]
 
-    return update_one, run_batch
+    return _cached_njit(update_one, step), _cached_njit(run_batch, step)
+
+
+class _StepKeyedCache(FunctionCache):
+    """Disk cache for a driver built around one estimator's step.
+
+    numba keys a closure's cache entry on its pickled closure cells; a dispatcher
+    pickles with a random per-process id, so the default key never matched and every
+    process recompiled every estimator's drivers. This key uses the driver's bytecode
+    plus the step's qualified name and the text of the file defining it instead (an
+    edit there recompiles; edits to this file are caught by numba's own file check).
+    """
+
+    def __init__(self, py_func, step) -> None:
+        super().__init__(py_func)
+        fn = getattr(step, "py_func", step)
+        try:
+            source = Path(inspect.getsourcefile(fn) or "").read_bytes()
+        except (OSError, TypeError):
+            source = fn.__code__.co_code
+        self._step_digest = hashlib.sha256(
+            fn.__module__.encode() + fn.__qualname__.encode() + source).hexdigest()
+
+    def _index_key(self, sig, codegen):
+        code = hashlib.sha256(self._py_func.__code__.co_code).hexdigest()
+        return (sig, codegen.magic_tuple(), (code, self._step_digest))
+
+
+def _cached_njit(fn, step):
+    """njit(fn) with the step-keyed disk cache (compiled lazily)."""
+    dispatcher = njit(fn)
+    dispatcher._cache = _StepKeyedCache(dispatcher.py_func, step)
+    return dispatcher
+
+
+def prepare_update(update_one) -> None:
+    """Compile ``update_one`` for its two signatures (6D, 9D) and freeze it, so any other
+    argument types raise TypeError at the call instead of compiling a specialisation.
+    Called when an estimator is created: importing stays cheap, and an estimator
+    nobody uses is never compiled."""
+    if len(update_one.signatures) < len(_UPDATE_SIGNATURES):
+        for sig in _UPDATE_SIGNATURES:
+            update_one.compile(sig)
+        update_one.disable_compile()

@@ -112,12 +112,19 @@ class Estimator:
         self.rate_hz = float(rate_hz)
         self.world = "ENU" if Q.world_is_enu(world) else "NED"
         self.params = self.make_params(**params)
-        self._params_vec = np.ascontiguousarray(self._pack_params(self.params), dtype=float)
-        self._common = np.array([self.params.acc_range, self.params.gyr_range,
-                                 self.params.max_dt, 1.0 if self.world == "ENU" else 0.0])
+        self._dt = 1.0 / self.rate_hz
+        # One buffer holds state, parameters, counters and output (see
+        # _core.make_workspace); the attributes below are views into it.
+        self._ws = _core.make_workspace(
+            self._state_size,
+            np.ascontiguousarray(self._pack_params(self.params), dtype=float).ravel(),
+            np.array([self.params.acc_range, self.params.gyr_range, self.params.max_dt,
+                      1.0 if self.world == "ENU" else 0.0]))
+        (self._state, self._params_vec, self._common, self._counters,
+         self._out) = _core.workspace_views(self._ws)
         self._q0 = None if q0 is None else np.array(q0, dtype=float)
-        self._out = np.empty(4)
-        self._no_mag = np.zeros(3)
+        _core.prepare_update(type(self)._update_one)
+        self._kernel = type(self)._update_one  # bound once: update() is per sample
         self.reset()
 
     # --- parameters ----------------------------------------------------------------
@@ -163,8 +170,8 @@ class Estimator:
             state[0:4] = Q.enu_to_ned(q) if self.world == "ENU" else q
             state[_core.INIT] = 1.0
         self._init_private(state, self.params)
-        self._state = state
-        self._counters = np.zeros(_core.N_COUNTERS, dtype=np.int64)
+        self._state[:] = state
+        self._counters[:] = 0.0
         self._last_flags = 0
 
     @property
@@ -201,22 +208,33 @@ class Estimator:
         seconds since the previous sample (default ``1/rate_hz``). Bad samples are counted
         in ``counters``, never raised: a sensor stream must not crash the caller.
         """
-        g = np.asarray(gyr, dtype=np.float64)
-        a = np.asarray(acc, dtype=np.float64)
+        step_dt = self._dt if dt is None else dt
+        try:
+            # Fast path: contiguous float64 (3,) arrays go straight to the kernel.
+            flags = self._kernel(self._ws, gyr, acc, mag, step_dt)
+        except TypeError:
+            flags = -1
+        if flags < 0:
+            flags = self._update_converted(gyr, acc, mag, step_dt)
+        self._last_flags = flags
+        return self._out.copy()
+
+    def _update_converted(self, gyr: object, acc: object, mag: object, dt: object) -> int:
+        """update() for inputs the kernel does not take as they are: convert or raise."""
+        g = np.ascontiguousarray(gyr, dtype=np.float64)
+        a = np.ascontiguousarray(acc, dtype=np.float64)
         if g.shape != (3,) or a.shape != (3,):
             raise ValueError(f"gyr and acc must have shape (3,), got {g.shape} and {a.shape}")
-        if mag is None:
-            m, has_mag = self._no_mag, False
-        else:
-            m = np.asarray(mag, dtype=np.float64)
+        m = None
+        if mag is not None:
+            m = np.ascontiguousarray(mag, dtype=np.float64)
             if m.shape != (3,):
                 raise ValueError(f"mag must have shape (3,), got {m.shape}")
-            has_mag = True
-        step_dt = 1.0 / self.rate_hz if dt is None else float(dt)
-        self._last_flags = type(self)._update_one(
-            self._state, self._params_vec, self._common, g, a, m, has_mag, step_dt,
-            self._counters, self._out)
-        return self._out.copy()
+        try:
+            step_dt = float(dt)  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            raise ValueError(f"dt must be a number of seconds, got {dt!r}") from None
+        return type(self)._update_one(self._ws, g, a, m, step_dt)
 
     def run(self, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None = None,
             dt: float | np.ndarray | None = None) -> BatchResult:

@@ -1,0 +1,131 @@
+"""``attitude-bridge hil``: run the software GY-86 and stream MAVLink 2 over UDP."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import signal
+import sys
+from dataclasses import fields
+from pathlib import Path
+
+from .config import IMU_MESSAGES, EmulatorConfig
+from .faults import FaultConfig
+from .link import Emulator
+from .motion import PROFILE_NAMES
+
+PACING_SWITCH_INTERVAL_S = 1e-3
+
+FAULT_HELP = {
+    "loss": "probability a datagram is dropped",
+    "duplicate": "probability a datagram is sent twice",
+    "reorder": "probability a datagram is swapped with the next one",
+    "corrupt": "probability 1-3 bytes of a datagram are changed (CRC catches it)",
+    "truncate": "probability a datagram is cut short",
+    "time_jump_rate_hz": "board clock jumps forward, events per second",
+    "time_jump_s": "size of a forward clock jump [s]",
+    "time_backwards_rate_hz": "board clock steps backwards, events per second",
+    "time_backwards_s": "size of a backward clock step [s]",
+    "saturation_rate_hz": "an IMU axis pinned at full scale, events per second",
+    "saturation_duration_s": "length of a saturation event [s]",
+    "stuck_rate_hz": "IMU readings frozen (re-sent unchanged), events per second",
+    "stuck_duration_s": "length of a stuck event [s]",
+    "vibration_g": "accelerometer vibration amplitude [g] (continuous)",
+    "vibration_dps": "gyro vibration amplitude [deg/s] (continuous)",
+    "vibration_hz": "vibration frequency [Hz]",
+    "mag_disturbance_rate_hz": "a magnet nearby, events per second",
+    "mag_disturbance_gauss": "extra field of a magnetic disturbance [gauss]",
+    "mag_disturbance_duration_s": "length of a magnetic disturbance [s]",
+    "gyro_bias_step_rate_hz": "gyro bias steps, events per second",
+    "gyro_bias_step_dps": "size of a gyro bias step [deg/s]",
+}
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "hil", help="emulate a GY-86 on an STM32, streaming MAVLink 2 over UDP",
+        description="Software GY-86 (MPU6050 + HMC5883L + MS5611) on an STM32: RAW_IMU, "
+                    "SCALED_PRESSURE, HEARTBEAT and HIL_STATE_QUATERNION truth over UDP.")
+    p.add_argument("--target", action="append", required=True, metavar="udp:HOST:PORT",
+                   help="where to send (repeat for several targets)")
+    p.add_argument("--profile", default="flight",
+                   help=f"motion: {', '.join(PROFILE_NAMES)} or file:PATH (CSV time_s,qw,qx,qy,qz)")
+    p.add_argument("--rate", type=float, default=1000.0, help="IMU rate [Hz] (default 1000)")
+    p.add_argument("--duration", type=float, default=0.0,
+                   help="seconds of stream; 0 runs until interrupted (default)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--fast", action="store_true", help="send as fast as possible (tests)")
+    p.add_argument("--imu-message", default="RAW_IMU", choices=IMU_MESSAGES)
+    p.add_argument("--sysid", type=int, default=1)
+    p.add_argument("--truth-rate", type=float, default=None,
+                   help="HIL_STATE_QUATERNION rate [Hz] (default: IMU rate, at most 1000)")
+    p.add_argument("--clock-drift-ppm", type=float, default=0.0)
+    p.add_argument("--clock-jitter-us", type=float, default=0.0)
+    p.add_argument("--stats-json", type=Path, help="write the sent/fault counts here at exit")
+    faults = p.add_argument_group("faults")
+    for f in fields(FaultConfig):
+        faults.add_argument("--" + f.name.replace("_", "-"), dest=f"fault_{f.name}", type=float,
+                            default=f.default, metavar="X",
+                            help=f"{FAULT_HELP[f.name]} (default {f.default})")
+    p.set_defaults(func=_run)
+
+
+def parse_target(text: str) -> tuple[str, int]:
+    """``udp:HOST:PORT`` (or ``HOST:PORT``) -> (host, port); ValueError otherwise."""
+    parts = text.split(":")
+    if len(parts) == 3 and parts[0] in ("udp", "udpout"):
+        parts = parts[1:]
+    if len(parts) != 2 or not parts[1].isdigit():
+        raise ValueError(f"target must look like udp:HOST:PORT, got {text!r}")
+    return parts[0], int(parts[1])
+
+
+def config_from_args(args: argparse.Namespace) -> EmulatorConfig:
+    faults = FaultConfig(**{f.name: getattr(args, f"fault_{f.name}") for f in fields(FaultConfig)})
+    return EmulatorConfig(
+        profile=args.profile, rate_hz=args.rate,
+        duration_s=args.duration if args.duration > 0 else None, seed=args.seed,
+        sysid=args.sysid, imu_message=args.imu_message, fast=args.fast, faults=faults,
+        truth_rate_hz=args.truth_rate, clock_drift_ppm=args.clock_drift_ppm,
+        clock_jitter_us=args.clock_jitter_us)
+
+
+def _run(args: argparse.Namespace) -> int:
+    try:
+        targets = [parse_target(t) for t in args.target]
+        config = config_from_args(args)
+        emulator = Emulator(config)
+    except ValueError as exc:
+        print(f"attitude-bridge hil: error: {exc}", file=sys.stderr)
+        return 2
+    rate = config.imu_rate_hz
+    if abs(rate - args.rate) > 1e-6:
+        print(f"IMU rate {args.rate:g} Hz is not available on the MPU6050; using {rate:g} Hz",
+              file=sys.stderr)
+    until = f"for {config.duration_s:g} s" if config.duration_s else "until interrupted"
+    print(f"hil: {config.profile} at {rate:g} Hz to {', '.join(args.target)} {until}"
+          f"{' (fast)' if config.fast else ''}", file=sys.stderr)
+    # The chunk-making thread would otherwise hold the GIL for up to 5 ms at a time,
+    # delaying the paced sends by as much.
+    sys.setswitchinterval(PACING_SWITCH_INTERVAL_S)
+    try:
+        asyncio.run(_stream(emulator, targets))
+    except ValueError as exc:
+        print(f"attitude-bridge hil: error: {exc}", file=sys.stderr)
+        return 2
+    print(emulator.stats.summary(), file=sys.stderr)
+    if args.stats_json:
+        args.stats_json.write_text(json.dumps(emulator.stats.to_dict(), indent=2))
+    return 0
+
+
+async def _stream(emulator: Emulator, targets: list[tuple[str, int]]) -> None:
+    """Run until the duration ends or SIGINT/SIGTERM arrives (then stop cleanly)."""
+    task = asyncio.current_task()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, task.cancel)
+    with contextlib.suppress(asyncio.CancelledError):
+        await emulator.run(targets)

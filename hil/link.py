@@ -1,0 +1,119 @@
+"""The board's UDP link: paces the firmware's packets in real time (or as fast as
+possible) to one or more targets, through the link faults, inside asyncio."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import socket
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+from .config import EmulatorConfig
+from .faults import LinkFaults
+from .messages import Firmware, Packet
+from .source import SampleSource
+from .stats import EmulatorStats
+
+log = logging.getLogger(__name__)
+
+#: In --fast mode, let the event loop (and any in-process receiver) run this often.
+FAST_YIELD_EVERY = 16
+
+
+class _Sender(asyncio.DatagramProtocol):
+    def __init__(self, stats: EmulatorStats):
+        self.stats = stats
+
+    def error_received(self, exc: Exception) -> None:
+        # A target without a listener answers with ICMP port unreachable; keep going.
+        self.stats.send_errors += 1
+        log.debug("send error: %s", exc)
+
+
+class Emulator:
+    """A software GY-86 + STM32 streaming MAVLink 2 over UDP. ``stats`` counts everything."""
+
+    def __init__(self, config: EmulatorConfig):
+        self.config = config
+        self.stats = EmulatorStats()
+
+    async def run(self, targets: list[tuple[str, int]]) -> EmulatorStats:
+        """Stream until ``duration_s`` of samples went out, or until cancelled."""
+        if not targets:
+            raise ValueError("at least one UDP target is needed")
+        cfg = self.config
+        loop = asyncio.get_running_loop()
+        addresses = [await _resolve(loop, host, port) for host, port in targets]
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.setblocking(False)
+        transport, _ = await loop.create_datagram_endpoint(lambda: _Sender(self.stats),
+                                                           sock=sock)
+        source = SampleSource(cfg, counts=self.stats.faults)
+        mpu = source.mpu.config
+        firmware = Firmware(cfg, (mpu.gyro_lsb_per_dps, mpu.accel_lsb_per_g),
+                            source.hmc.config.lsb_per_gauss)
+        link = LinkFaults(cfg.faults, source.rng["link_faults"], self.stats.faults)
+        start_wall = time.perf_counter()
+        start: float | None = None  # stream time 0 = when the first packet is ready
+        sent_since_yield = 0
+
+        def send(datagrams: list[bytes]) -> None:
+            for data in datagrams:
+                for addr in addresses:
+                    transport.sendto(data, addr)
+                    self.stats.datagrams_sent += 1
+                    self.stats.bytes_sent += len(data)
+
+        def produce() -> tuple[int, float, list[Packet]]:
+            rec = source.chunk()
+            t_end = source.time_s
+            return len(rec), t_end, firmware.packets(rec, t_end)
+
+        # Chunks are made in a worker thread one step ahead, so that generating the next
+        # 50 ms of data does not stall the pacing of the current one.
+        worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="hil-chunks")
+        try:
+            pending = loop.run_in_executor(worker, produce)
+            while pending is not None:
+                n_samples, t_end, packets = await pending
+                pending = None if source.finished else loop.run_in_executor(worker, produce)
+                if start is None:
+                    start = loop.time()
+                for packet in packets:
+                    if cfg.fast:
+                        sent_since_yield += 1
+                        if sent_since_yield >= FAST_YIELD_EVERY:
+                            sent_since_yield = 0
+                            await asyncio.sleep(0)
+                    else:
+                        wait = start + packet.due_s - loop.time()
+                        if wait > 0.0:
+                            await asyncio.sleep(wait)
+                    self.stats.count_message(packet.kind)
+                    send(link.apply(packet.data))
+                self.stats.imu_samples += n_samples
+                self.stats.stream_time_s = t_end
+            send(link.flush())
+            await _drain(transport)
+        finally:
+            worker.shutdown(wait=False, cancel_futures=True)
+            self.stats.wall_time_s = time.perf_counter() - start_wall
+            transport.close()
+        return self.stats
+
+
+async def _resolve(loop: asyncio.AbstractEventLoop, host: str, port: int) -> tuple[str, int]:
+    if not 0 < port < 65536:
+        raise ValueError(f"bad UDP port {port}")
+    try:
+        info = await loop.getaddrinfo(host, port, family=socket.AF_INET, type=socket.SOCK_DGRAM)
+    except socket.gaierror as exc:
+        raise ValueError(f"cannot resolve {host!r}: {exc}") from exc
+    return info[0][4][:2]
+
+
+async def _drain(transport: asyncio.DatagramTransport) -> None:
+    """Wait until asyncio has handed every buffered datagram to the kernel."""
+    while transport.get_write_buffer_size() > 0:
+        await asyncio.sleep(0.001)

@@ -1,0 +1,176 @@
+"""The firmware's MAVLink side: turns a chunk of readings into timed MAVLink 2 packets.
+
+What goes out (system id from the config, component MAV_COMP_ID_AUTOPILOT1):
+
+* HEARTBEAT at 1 Hz: a quadrotor, MAV_AUTOPILOT_GENERIC, HIL enabled, active;
+* RAW_IMU with every IMU sample: the MPU6050 / HMC5883L register counts in the chips'
+  axes (RFU) and ``temperature`` from TEMP_OUT in cdegC; the magnetometer fields repeat
+  the last reading between its 15 Hz updates. Or, with ``imu_message``, SCALED_IMU
+  (mG, mrad/s, mGauss) or HIGHRES_IMU (SI, gauss) converted to FRD, as a flight
+  controller sends them (an overflowed magnetometer axis is converted as read);
+* SCALED_PRESSURE with every MS5611 reading (50 Hz), after the datasheet compensation;
+* HIL_STATE_QUATERNION truth with every ``truth_divider``-th IMU sample (each sample up
+  to 1 kHz), on the same board clock: attitude FRD -> NED, body rates, position and
+  velocity, and the true specific force in mG.
+
+Each packet is due at the true time of the reading it carries (heartbeats at whole
+seconds), which the link uses to pace the stream.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+os.environ["MAVLINK20"] = "1"
+from pymavlink.dialects.v20 import common as mavlink
+
+from .config import EmulatorConfig
+from .environment import G
+from .recording import Recording
+from .source import frd_from_chip
+
+EARTH_RADIUS_M = 6371000.0
+# Order of packets due at the same instant: a barometer reading goes before the IMU
+# sample, so that HIGHRES_IMU can already carry it.
+ORDER_HEARTBEAT, ORDER_BARO, ORDER_IMU, ORDER_TRUTH = range(4)
+HIGHRES_ACC_GYRO = 0x3F
+HIGHRES_MAG = 0x1C0
+HIGHRES_BARO = 0x200 | 0x800 | 0x1000  # abs pressure, pressure altitude, temperature
+
+
+@dataclass(frozen=True)
+class Packet:
+    due_s: float  # true stream time at which it should leave
+    kind: str  # MAVLink message name
+    data: bytes
+
+
+class Firmware:
+    """Packs readings into MAVLink 2 with one sequence counter, like an autopilot."""
+
+    def __init__(self, config: EmulatorConfig, mpu_lsb: tuple[float, float], mag_lsb: float):
+        self.config = config
+        self.mav = mavlink.MAVLink(None, srcSystem=config.sysid, srcComponent=config.compid)
+        self.gyro_lsb_per_dps, self.accel_lsb_per_g = mpu_lsb
+        self.mag_lsb_per_gauss = mag_lsb
+        self._next_heartbeat = 0
+        self._pressure_hpa = math.nan  # latest barometer reading, for HIGHRES_IMU
+        self._baro_new = False
+
+    def packets(self, rec: Recording, t_end: float) -> list[Packet]:
+        """Every packet due in [first sample, t_end), in sending order."""
+        items: list[tuple[float, int, str, int]] = []
+        period = 1.0 / self.config.heartbeat_hz
+        while self._next_heartbeat * period < t_end:
+            items.append((self._next_heartbeat * period, ORDER_HEARTBEAT, "HEARTBEAT", 0))
+            self._next_heartbeat += 1
+        items.extend((t, ORDER_BARO, "SCALED_PRESSURE", m)
+                     for m, t in enumerate(rec.baro_t_s.tolist()))
+        imu = self.config.imu_message
+        for k, (t, truth) in enumerate(zip(rec.t_s.tolist(), rec.truth_on_wire.tolist(),
+                                           strict=True)):
+            items.append((t, ORDER_IMU, imu, k))
+            if truth:
+                items.append((t, ORDER_TRUTH, "HIL_STATE_QUATERNION", k))
+        items.sort(key=lambda i: (i[0], i[1]))
+        build = {
+            "HEARTBEAT": lambda _: self._heartbeat(),
+            "SCALED_PRESSURE": self._scaled_pressure_builder(rec),
+            "HIL_STATE_QUATERNION": self._truth_builder(rec),
+            imu: self._imu_builder(rec),
+        }
+        return [Packet(t, kind, self._pack(build[kind](i))) for t, _, kind, i in items]
+
+    def _pack(self, msg: mavlink.MAVLink_message) -> bytes:
+        data = bytes(msg.pack(self.mav))
+        # pymavlink advances the sequence number in send(), not in pack().
+        self.mav.seq = (self.mav.seq + 1) % 256
+        return data
+
+    def _heartbeat(self) -> mavlink.MAVLink_message:
+        return mavlink.MAVLink_heartbeat_message(
+            type=mavlink.MAV_TYPE_QUADROTOR, autopilot=mavlink.MAV_AUTOPILOT_GENERIC,
+            base_mode=mavlink.MAV_MODE_FLAG_HIL_ENABLED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+            custom_mode=0, system_status=mavlink.MAV_STATE_ACTIVE, mavlink_version=3)
+
+    # Each builder converts a whole chunk with numpy once, then makes messages by index.
+
+    def _imu_builder(self, rec: Recording):
+        kind = self.config.imu_message
+        temp = _int16_array(rec.temperature_c * 100.0)
+        temp[temp == 0] = 1  # 0 means "no temperature" in RAW_IMU / SCALED_IMU
+        temp = temp.tolist()
+        if kind == "RAW_IMU":
+            time_us = rec.time_us.tolist()
+            rows = np.hstack([rec.acc_counts, rec.gyr_counts, rec.mag_counts]).tolist()
+            return lambda k: mavlink.MAVLink_raw_imu_message(time_us[k], *rows[k], 0, temp[k])
+        acc = frd_from_chip(rec.acc_counts) * (G / self.accel_lsb_per_g)
+        gyr = np.radians(frd_from_chip(rec.gyr_counts) / self.gyro_lsb_per_dps)
+        mag = frd_from_chip(rec.mag_counts) / self.mag_lsb_per_gauss
+        if kind == "SCALED_IMU":
+            time_ms = (rec.time_us // 1000).tolist()
+            rows = np.hstack([_int16_array(acc / G * 1000.0), _int16_array(gyr * 1000.0),
+                              _int16_array(mag * 1000.0)]).tolist()
+            return lambda k: mavlink.MAVLink_scaled_imu_message(time_ms[k], *rows[k], temp[k])
+        time_us = rec.time_us.tolist()
+        rows = np.hstack([acc, gyr, mag]).tolist()
+        temp_c = rec.temperature_c.tolist()
+        updated = rec.mag_updated.tolist()
+
+        def highres(k: int) -> mavlink.MAVLink_message:
+            fields = HIGHRES_ACC_GYRO | (HIGHRES_MAG if updated[k] else 0)
+            if self._baro_new:
+                fields |= HIGHRES_BARO
+                self._baro_new = False
+            return mavlink.MAVLink_highres_imu_message(
+                time_us[k], *rows[k], self._pressure_hpa, 0.0,
+                _pressure_altitude(self._pressure_hpa), temp_c[k], fields, 0)
+        return highres
+
+    def _scaled_pressure_builder(self, rec: Recording):
+        time_ms = (rec.baro_time_us // 1000).tolist()
+        hpa = (rec.pressure_pa / 100.0).tolist()
+        temp = _int16_array(rec.baro_temp_cdeg).tolist()
+
+        def scaled_pressure(m: int) -> mavlink.MAVLink_message:
+            # Remembered for HIGHRES_IMU, which carries the latest barometer reading.
+            self._pressure_hpa = hpa[m]
+            self._baro_new = True
+            return mavlink.MAVLink_scaled_pressure_message(time_ms[m], hpa[m], 0.0, temp[m], 0)
+        return scaled_pressure
+
+    def _truth_builder(self, rec: Recording):
+        env = self.config.environment
+        north, east, down = rec.truth_position_ned.T
+        lat = np.round((env.latitude_deg + np.degrees(north / EARTH_RADIUS_M)) * 1e7)
+        lon = np.round((env.longitude_deg + np.degrees(
+            east / (EARTH_RADIUS_M * math.cos(math.radians(env.latitude_deg))))) * 1e7)
+        alt = np.round((env.ground_altitude_m - down) * 1000.0)
+        speed = np.minimum(65535, np.round(np.linalg.norm(rec.truth_velocity_ned, axis=1) * 100))
+        ints = np.column_stack([
+            lat, lon, alt, _int16_array(rec.truth_velocity_ned * 100.0), speed, speed,
+            _int16_array(rec.truth_specific_force / G * 1000.0)]).astype(np.int64).tolist()
+        time_us = rec.time_us.tolist()
+        q = rec.truth_q.tolist()
+        rates = rec.truth_rates.tolist()
+
+        def truth(k: int) -> mavlink.MAVLink_message:
+            i = ints[k]
+            return mavlink.MAVLink_hil_state_quaternion_message(
+                time_us[k], q[k], *rates[k], *i[0:3], *i[3:6], i[6], i[7], *i[8:11])
+        return truth
+
+
+def _int16_array(x: np.ndarray) -> np.ndarray:
+    return np.clip(np.round(np.asarray(x, dtype=float)), -32768, 32767).astype(np.int64)
+
+
+def _pressure_altitude(pressure_hpa: float) -> float:
+    """ISA altitude [m] for a static pressure (NaN before the first reading)."""
+    if not math.isfinite(pressure_hpa) or pressure_hpa <= 0.0:
+        return math.nan
+    return 44330.77 * (1.0 - (pressure_hpa / 1013.25) ** 0.190263)

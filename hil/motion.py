@@ -1,0 +1,329 @@
+"""Trajectories with exact truth: attitude, body rates, specific force, field.
+
+Every profile is built from smooth analytic pieces, so its derivatives are exact:
+
+* attitude from Z-Y-X Euler angles ``(roll, pitch, yaw)(t)`` — unbounded, so a flip is
+  just pitch going through 2π — with body rates from the Euler kinematics
+  ``p = φ' - ψ' sinθ``, ``q = θ' cosφ + ψ' sinφ cosθ``, ``r = -θ' sinφ + ψ' cosφ cosθ``;
+* position (NED) with its analytic second derivative, the linear acceleration.
+
+Integrating the body rates therefore reproduces the attitude (tests check it).
+Specific force in the body frame is ``R^T (a_ned - g_ned)``: level and at rest the
+FRD accelerometer reads ``[0, 0, -g]``.
+
+``file:PATH`` replays a recorded attitude: a CSV with a header row
+``time_s,qw,qx,qy,qz`` (quaternion FRD body -> NED, any sign, need not be exactly unit),
+strictly increasing time; ``#`` comment lines allowed. Between rows the body rotates at
+the constant rate that joins the two attitudes (so the truth rates are exact for the
+replayed motion); after the last row it holds still. Position stays fixed.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from estimators import quat
+
+from .environment import GRAVITY_NED
+
+PROFILE_NAMES = ("static", "tilt", "flight", "aggressive")
+TILT_ROLL_DEG = 15.9  # the seed paper's static test
+TILT_PITCH_DEG = 9.2
+
+
+@dataclass(frozen=True)
+class Truth:
+    """Truth at a set of times: FRD body, NED world."""
+
+    t: np.ndarray  # (N,) seconds since the start of the motion
+    q: np.ndarray  # (N, 4) body -> NED
+    rates: np.ndarray  # (N, 3) body rates [rad/s] FRD
+    accel_ned: np.ndarray  # (N, 3) linear acceleration [m/s^2]
+    velocity_ned: np.ndarray  # (N, 3) [m/s]
+    position_ned: np.ndarray  # (N, 3) [m] relative to the take-off point
+
+    def specific_force(self) -> np.ndarray:
+        """What an ideal accelerometer reads, FRD [m/s^2]: R^T (a - g)."""
+        r = quat.to_dcm(self.q)
+        return np.einsum("nji,nj->ni", r, self.accel_ned - GRAVITY_NED)
+
+    def to_body(self, v_ned: np.ndarray) -> np.ndarray:
+        """A world vector (e.g. the Earth's field) in the body frame at each time."""
+        r = quat.to_dcm(self.q)
+        return np.einsum("nji,j->ni", r, np.asarray(v_ned, dtype=float))
+
+
+# ---- smooth building blocks -------------------------------------------------------
+
+@dataclass(frozen=True)
+class Ramp:
+    """Change by ``delta`` between start and start+duration along a quintic smoothstep.
+
+    The quintic 10u³-15u⁴+6u⁵ has zero first and second derivative at both ends, so
+    rates and accelerations are continuous.
+    """
+
+    start: float
+    duration: float
+    delta: float
+
+
+@dataclass(frozen=True)
+class Wobble:
+    """``amplitude * (1 - cos(2π f τ)) / 2`` for whole cycles from start to stop.
+
+    Starting and stopping where value and derivative are both zero keeps the body
+    rates continuous.
+    """
+
+    amplitude: float
+    frequency_hz: float
+    start: float
+    cycles: int
+
+
+@dataclass
+class Channel:
+    """One scalar of a trajectory: initial value + ramps + wobbles, with derivatives."""
+
+    initial: float = 0.0
+    ramps: list[Ramp] = field(default_factory=list)
+    wobbles: list[Wobble] = field(default_factory=list)
+
+    def ramp(self, start: float, duration: float, delta: float) -> Channel:
+        self.ramps.append(Ramp(start, duration, delta))
+        return self
+
+    def _ramp_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if getattr(self, "_cache_len", -1) != len(self.ramps):
+            self._cache = (np.array([r.start for r in self.ramps], dtype=float),
+                           np.array([r.start + r.duration for r in self.ramps], dtype=float),
+                           np.array([r.delta for r in self.ramps], dtype=float))
+            self._cache_len = len(self.ramps)
+        return self._cache
+
+    def _wobble_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        if getattr(self, "_wobble_len", -1) != len(self.wobbles):
+            starts = np.array([w.start for w in self.wobbles], dtype=float)
+            ends = starts + np.array([w.cycles / w.frequency_hz for w in self.wobbles])
+            self._wobble_cache = (starts, ends)
+            self._wobble_len = len(self.wobbles)
+        return self._wobble_cache
+
+    def evaluate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Value, first and second derivative at times t.
+
+        Only pieces overlapping [min t, max t] are evaluated; finished ramps just add
+        their delta, so long (hours) profiles stay cheap per chunk.
+        """
+        t = np.asarray(t, dtype=float)
+        v = np.full(t.shape, float(self.initial))
+        d1 = np.zeros(t.shape)
+        d2 = np.zeros(t.shape)
+        if t.size == 0:
+            return v, d1, d2
+        lo, hi = float(t.min()), float(t.max())
+        starts, ends, deltas = self._ramp_arrays()
+        done = ends <= lo
+        v += deltas[done].sum()
+        for i in np.flatnonzero(~done & (starts < hi)):
+            r = self.ramps[i]
+            u = np.clip((t - r.start) / r.duration, 0.0, 1.0)
+            inside = (u > 0.0) & (u < 1.0)
+            v += r.delta * u**3 * (10.0 - 15.0 * u + 6.0 * u**2)
+            d1 += np.where(inside, r.delta / r.duration * 30.0 * u**2 * (1.0 - u) ** 2, 0.0)
+            d2 += np.where(inside, r.delta / r.duration**2 * 60.0 * u * (1.0 - u) * (1.0 - 2.0 * u),
+                           0.0)
+        w_starts, w_ends = self._wobble_arrays()
+        for i in np.flatnonzero((w_ends > lo) & (w_starts < hi)):
+            s = self.wobbles[i]
+            end = w_ends[i]
+            w = 2.0 * math.pi * s.frequency_hz
+            tau = t - s.start
+            on = (tau >= 0.0) & (t < end)
+            half = 0.5 * s.amplitude
+            v += np.where(on, half * (1.0 - np.cos(w * tau)), 0.0)
+            d1 += np.where(on, half * w * np.sin(w * tau), 0.0)
+            d2 += np.where(on, half * w * w * np.cos(w * tau), 0.0)
+        return v, d1, d2
+
+
+class Profile:
+    """A motion: truth at any times."""
+
+    name = "profile"
+
+    def truth(self, t: np.ndarray) -> Truth:
+        raise NotImplementedError
+
+
+class EulerProfile(Profile):
+    """Attitude from Euler-angle channels [rad], position from NED channels [m]."""
+
+    def __init__(self, name: str, roll: Channel, pitch: Channel, yaw: Channel,
+                 north: Channel | None = None, east: Channel | None = None,
+                 down: Channel | None = None):
+        self.name = name
+        self.euler = (roll, pitch, yaw)
+        self.position = (north or Channel(), east or Channel(), down or Channel())
+
+    def truth(self, t: np.ndarray) -> Truth:
+        t = np.asarray(t, dtype=float)
+        (phi, dphi, _), (theta, dtheta, _), (psi, dpsi, _) = (c.evaluate(t) for c in self.euler)
+        rates = np.stack([
+            dphi - dpsi * np.sin(theta),
+            dtheta * np.cos(phi) + dpsi * np.sin(phi) * np.cos(theta),
+            -dtheta * np.sin(phi) + dpsi * np.cos(phi) * np.cos(theta),
+        ], axis=-1)
+        pos = [c.evaluate(t) for c in self.position]
+        return Truth(
+            t=t,
+            q=quat.canonical(quat.from_euler(phi, theta, psi)),
+            rates=rates,
+            position_ned=np.stack([p[0] for p in pos], axis=-1),
+            velocity_ned=np.stack([p[1] for p in pos], axis=-1),
+            accel_ned=np.stack([p[2] for p in pos], axis=-1),
+        )
+
+
+def _deg(x: float) -> float:
+    return math.radians(x)
+
+
+def static() -> Profile:
+    """Level, facing north, at rest."""
+    return EulerProfile("static", Channel(), Channel(), Channel())
+
+
+def tilt() -> Profile:
+    """The seed paper's static attitude: roll 15.9°, pitch 9.2°, at rest."""
+    return EulerProfile("tilt", Channel(_deg(TILT_ROLL_DEG)), Channel(_deg(TILT_PITCH_DEG)),
+                        Channel())
+
+
+FLIGHT_TAKEOFF_S = 6.0
+FLIGHT_CYCLE_S = 24.0
+
+
+def flight(duration_s: float) -> Profile:
+    """Take-off to 10 m, hover, then repeated cycles of manoeuvres, yaw turns and climbs.
+
+    Each 24 s cycle: roll and pitch manoeuvres (±20-25°) with the horizontal motion they
+    cause, a 90° and a -180° yaw turn, a 5 m climb and descent, and a gentle 0.4 Hz
+    roll wobble; every cycle ends level at hover height, so any duration works.
+    """
+    roll, pitch, yaw = Channel(), Channel(), Channel()
+    north, east, down = Channel(), Channel(), Channel()
+    down.ramp(1.0, 4.0, -10.0)  # take-off
+    cycles = max(1, math.ceil((duration_s - FLIGHT_TAKEOFF_S) / FLIGHT_CYCLE_S))
+    for k in range(cycles):
+        c = FLIGHT_TAKEOFF_S + k * FLIGHT_CYCLE_S
+        roll.ramp(c + 0.0, 1.0, _deg(20)).ramp(c + 2.0, 1.0, _deg(-20))
+        east.ramp(c + 0.5, 3.0, 4.0)
+        pitch.ramp(c + 3.5, 1.0, _deg(-15)).ramp(c + 5.5, 1.0, _deg(15))
+        north.ramp(c + 4.0, 3.0, 6.0)
+        yaw.ramp(c + 7.0, 3.0, _deg(90))
+        down.ramp(c + 10.0, 4.0, -5.0)
+        roll.ramp(c + 12.0, 0.8, _deg(-25)).ramp(c + 13.6, 0.8, _deg(25))
+        yaw.ramp(c + 15.0, 4.0, _deg(-180))
+        down.ramp(c + 16.0, 4.0, 5.0)
+        pitch.ramp(c + 20.0, 1.0, _deg(20)).ramp(c + 22.0, 1.0, _deg(-20))
+        north.ramp(c + 20.5, 3.0, -6.0)
+        east.ramp(c + 20.5, 3.0, -4.0)
+        roll.wobbles.append(Wobble(_deg(4.0), 0.4, c, 9))
+    return EulerProfile("flight", roll, pitch, yaw, north, east, down)
+
+
+AGGRESSIVE_CYCLE_S = 12.0
+
+
+def aggressive(duration_s: float) -> Profile:
+    """Flips: full pitch loops through +90° and -90°, roll rolls, and a fast yaw spin.
+
+    One loop takes 1 s (peak rate ≈ 675 °/s, inside the ±2000 °/s gyro range); each
+    12 s cycle returns to level.
+    """
+    roll, pitch, yaw = Channel(), Channel(), Channel()
+    down = Channel().ramp(0.5, 2.0, -5.0)
+    cycles = max(1, math.ceil(duration_s / AGGRESSIVE_CYCLE_S))
+    for k in range(cycles):
+        c = 1.0 + k * AGGRESSIVE_CYCLE_S
+        pitch.ramp(c + 1.0, 1.0, 2.0 * math.pi)  # forward loop: through +90°
+        pitch.ramp(c + 3.0, 1.0, -2.0 * math.pi)  # backward loop: through -90°
+        roll.ramp(c + 5.0, 1.0, 2.0 * math.pi)
+        pitch.ramp(c + 7.0, 0.6, _deg(80)).ramp(c + 8.0, 0.6, _deg(-80))  # near vertical
+        yaw.ramp(c + 9.0, 1.5, 2.0 * math.pi)
+        roll.ramp(c + 9.2, 0.5, _deg(30)).ramp(c + 10.2, 0.5, _deg(-30))
+    return EulerProfile("aggressive", roll, pitch, yaw, down=down)
+
+
+class FileProfile(Profile):
+    """Replay of a recorded attitude (see the module docstring for the CSV format)."""
+
+    def __init__(self, path: str | Path):
+        self.name = f"file:{path}"
+        self.times, self.q = load_attitude_csv(path)
+        dt = np.diff(self.times)
+        step = quat.multiply(quat.conjugate(self.q[:-1]), self.q[1:])
+        self.rates = quat.to_rotvec(step) / dt[:, None]  # constant body rate per interval
+
+    def truth(self, t: np.ndarray) -> Truth:
+        t = np.asarray(t, dtype=float)
+        last = len(self.times) - 1
+        i = np.clip(np.searchsorted(self.times, t, side="right") - 1, 0, last)
+        seg = np.minimum(i, last - 1)
+        moving = (t >= self.times[0]) & (t < self.times[-1])
+        tau = np.clip(t - self.times[seg], 0.0, None)
+        rates = np.where(moving[:, None], self.rates[seg], 0.0)
+        base = np.where(moving[:, None], self.q[seg], self.q[i])
+        q = quat.canonical(quat.multiply(base, quat.from_rotvec(rates * tau[:, None])))
+        zeros = np.zeros((len(t), 3))
+        return Truth(t=t, q=q, rates=rates, accel_ned=zeros, velocity_ned=zeros,
+                     position_ned=zeros)
+
+
+def load_attitude_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(times from 0, unit quaternions with a continuous sign) from a truth CSV."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ValueError(f"cannot read motion file {path}: {exc}") from exc
+    rows = [line for line in text.splitlines() if line.strip() and not line.startswith("#")]
+    reader = csv.DictReader(rows)
+    need = ["time_s", "qw", "qx", "qy", "qz"]
+    if reader.fieldnames is None or any(k not in reader.fieldnames for k in need):
+        raise ValueError(f"{path}: header must contain {','.join(need)}")
+    try:
+        data = np.array([[float(r[k]) for k in need] for r in reader])
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: non-numeric value ({exc})") from exc
+    if len(data) < 2 or not np.all(np.isfinite(data)):
+        raise ValueError(f"{path}: need at least 2 rows of finite numbers")
+    times = data[:, 0] - data[0, 0]
+    if np.any(np.diff(times) <= 0.0):
+        raise ValueError(f"{path}: time_s must be strictly increasing")
+    norms = np.linalg.norm(data[:, 1:], axis=1)
+    if np.any(norms < 1e-6):
+        raise ValueError(f"{path}: zero-length quaternion")
+    q = data[:, 1:] / norms[:, None]
+    for k in range(1, len(q)):  # shortest path between rows
+        if np.dot(q[k], q[k - 1]) < 0.0:
+            q[k] = -q[k]
+    return times, q
+
+
+def make_profile(name: str, duration_s: float = 60.0) -> Profile:
+    """A profile by name (``static``, ``tilt``, ``flight``, ``aggressive``, ``file:PATH``)."""
+    if name.startswith("file:"):
+        return FileProfile(name[len("file:"):])
+    builders = {"static": lambda: static(), "tilt": lambda: tilt(),
+                "flight": lambda: flight(duration_s), "aggressive": lambda: aggressive(duration_s)}
+    if name not in builders:
+        raise ValueError(f"unknown profile {name!r}; valid: {', '.join(PROFILE_NAMES)}, file:PATH")
+    return builders[name]()

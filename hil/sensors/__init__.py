@@ -1,0 +1,1 @@
+"""Register-level models of the GY-86's chips: MPU6050, HMC5883L, MS5611."""

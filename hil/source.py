@@ -1,0 +1,187 @@
+"""The board's sampling loop: motion truth -> chips -> firmware readings, chunk by chunk.
+
+Both ``simulate`` (arrays) and the live emulator (UDP) pull the same fixed-size chunks
+from a ``SampleSource``, each random process drawing from its own seeded stream, so the
+same seed gives the same samples on both paths.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .board import BoardClock
+from .config import EmulatorConfig
+from .faults import ClockFaults, FaultCounts, SensorFaults
+from .motion import Profile, make_profile
+from .recording import Recording
+from .sensors import ms5611
+from .sensors.hmc5883l import OVERFLOW, Hmc5883l
+from .sensors.mpu6050 import G, Mpu6050, temperature_c
+
+CHUNK_S = 0.05  # stream time per chunk
+#: Profiles are laid out for this long when streaming without a duration (then hover).
+UNBOUNDED_HORIZON_S = 6 * 3600.0
+#: RNG streams, in SeedSequence.spawn order. Never reorder (it changes every run).
+STREAMS = ("mpu_build", "mpu_noise", "hmc_build", "hmc_noise", "baro", "clock",
+           "sensor_faults", "clock_faults", "link_faults")
+
+
+def frd_from_chip(v: np.ndarray) -> np.ndarray:
+    """Chip axes (RFU: X right, Y forward, Z up) -> FRD; also the inverse."""
+    v = np.asarray(v, dtype=float)
+    return np.stack([v[..., 1], v[..., 0], -v[..., 2]], axis=-1)
+
+
+chip_from_frd = frd_from_chip
+
+
+def random_streams(seed: int) -> dict[str, np.random.Generator]:
+    children = np.random.SeedSequence(seed).spawn(len(STREAMS))
+    return {name: np.random.default_rng(s) for name, s in zip(STREAMS, children, strict=True)}
+
+
+class SampleSource:
+    """Produces consecutive ``Recording`` chunks of ``chunk_samples`` IMU samples."""
+
+    def __init__(self, config: EmulatorConfig, counts: FaultCounts | None = None):
+        self.config = config
+        self.counts = counts if counts is not None else FaultCounts()
+        self.rng = random_streams(config.seed)
+        mpu_cfg = config.mpu
+        self.imu_rate = mpu_cfg.rate_hz
+        self.internal_rate = mpu_cfg.internal_rate_hz
+        self.decimation = mpu_cfg.decimation
+        self.mag_rate = config.hmc5883l.rate_hz
+        horizon = config.duration_s if config.duration_s is not None else UNBOUNDED_HORIZON_S
+        self.profile: Profile = make_profile(config.profile, horizon)
+        self.mpu = Mpu6050(mpu_cfg, self.rng["mpu_build"])
+        self.hmc = Hmc5883l(config.hmc5883l, self.rng["hmc_build"])
+        self.clock = BoardClock(config.boot_time_s, config.clock_drift_ppm,
+                                config.clock_jitter_us, self.rng["clock"])
+        self.clock_faults = ClockFaults(config.faults, self.rng["clock_faults"], self.counts,
+                                        self.imu_rate)
+        self.sensor_faults = SensorFaults(config.faults, self.rng["sensor_faults"], self.counts,
+                                          self.imu_rate, self.mag_rate)
+        self.field_ned = config.environment.field_ned_gauss()
+        # The accelerometer's 1 kHz hold needs whole 8-sample blocks at 8 kHz internal.
+        self.chunk_samples = 8 * max(1, math.ceil(self.imu_rate * CHUNK_S / 8))
+        self.total_samples = (None if config.duration_s is None
+                              else round(config.duration_s * self.imu_rate))
+        self.next_index = 0
+        self._next_mag = 0  # index of the next magnetometer sample to take
+        self._next_baro = 0
+        self._mag_held = np.zeros(3, dtype=np.int16)
+        self._last_imu = (np.zeros(3, np.int16), np.zeros(3, np.int16), 0)
+
+    @property
+    def finished(self) -> bool:
+        return self.total_samples is not None and self.next_index >= self.total_samples
+
+    @property
+    def time_s(self) -> float:
+        """True time of the next sample (= end of what was produced so far)."""
+        return self.next_index / self.imu_rate
+
+    def chunk(self) -> Recording:
+        """The next chunk (shorter at the end of a finite run)."""
+        cfg = self.config
+        k0, n = self.next_index, self.chunk_samples
+        if self.total_samples is not None:
+            n = min(n, self.total_samples - k0)
+        if n <= 0:
+            raise ValueError("the run is finished")
+        self.next_index += n
+        dec = self.decimation
+        t_int = (k0 * dec + np.arange(n * dec)) / self.internal_rate
+        t = t_int[::dec]
+
+        # MPU6050 at its internal rate, with the physical faults added in.
+        truth_int = self.profile.truth(t_int)
+        rate_dps = np.degrees(chip_from_frd(truth_int.rates))
+        accel_g = chip_from_frd(truth_int.specific_force()) / G
+        bias_dps, vib_g = self.sensor_faults.physical(t_int, self.internal_rate)
+        temp = cfg.environment.board_temperature(t_int)
+        gyr_c, acc_c, temp_raw = self.mpu.measure(rate_dps + bias_dps, accel_g + vib_g, temp,
+                                                  self.rng["mpu_noise"])
+        self.sensor_faults.count_vibration(n)
+        self.sensor_faults.imu_counts(gyr_c, acc_c, temp_raw, self._last_imu)
+        self._last_imu = (gyr_c[-1].copy(), acc_c[-1].copy(), int(temp_raw[-1]))
+
+        truth = self.profile.truth(t)
+        mag_c, updated = self._magnetometer(t)
+        time_us = self.clock.stamp(t, self.clock_faults.offsets(t))
+        baro = self._barometer(self.time_s)
+        lsb_g, lsb_a = self.mpu.config.gyro_lsb_per_dps, self.mpu.config.accel_lsb_per_g
+        mag = frd_from_chip(mag_c) / self.hmc.config.lsb_per_gauss
+        mag[np.any(mag_c == OVERFLOW, axis=1)] = np.nan
+        return Recording(
+            time_us=time_us, t_s=t,
+            gyr_counts=gyr_c, acc_counts=acc_c, mag_counts=mag_c, temp_raw=temp_raw,
+            mag_updated=updated,
+            gyr=np.radians(frd_from_chip(gyr_c) / lsb_g),
+            acc=frd_from_chip(acc_c) * (G / lsb_a),
+            mag=mag,
+            temperature_c=temperature_c(temp_raw),
+            truth_q=truth.q, truth_rates=truth.rates,
+            truth_specific_force=truth.specific_force(),
+            truth_mag=truth.to_body(self.field_ned),
+            truth_position_ned=truth.position_ned, truth_velocity_ned=truth.velocity_ned,
+            truth_on_wire=(k0 + np.arange(n)) % cfg.truth_divider == 0,
+            **baro,
+        )
+
+    def _magnetometer(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Held HMC5883L counts at IMU times t, taking new readings at the chip's rate."""
+        latest = np.floor(t * self.mag_rate + 1e-9).astype(np.int64)  # newest reading index
+        new = np.arange(self._next_mag, latest[-1] + 1)
+        out = np.empty((len(t), 3), dtype=np.int16)
+        updated = np.zeros(len(t), dtype=bool)
+        if len(new):
+            t_mag = new / self.mag_rate
+            body = self.profile.truth(t_mag).to_body(self.field_ned)
+            field = chip_from_frd(body) + self.sensor_faults.mag_field(len(new))
+            counts = self.hmc.measure(field, self.rng["hmc_noise"])
+            prior = np.concatenate([[self._mag_held], counts]).astype(np.int16)
+            pos = latest - self._next_mag + 1  # 0 -> the previous chunk's held value
+            out[:] = prior[pos]
+            updated = np.diff(np.concatenate([[self._next_mag - 1], latest])) > 0
+            self._mag_held = counts[-1]
+            self._next_mag = int(latest[-1]) + 1
+        else:
+            out[:] = self._mag_held
+        return out, updated
+
+    def _barometer(self, t_end: float) -> dict[str, np.ndarray]:
+        """MS5611 readings taken before t_end, compensated by the firmware."""
+        env = self.config.environment
+        stop = math.ceil(t_end * self.config.baro_rate_hz - 1e-9)
+        idx = np.arange(self._next_baro, max(self._next_baro, stop))
+        self._next_baro = max(self._next_baro, stop)
+        t = idx / self.config.baro_rate_hz
+        truth = self.profile.truth(t)
+        true_p = env.pressure_pa(env.ground_altitude_m - truth.position_ned[:, 2])
+        d1, d2 = self.config.ms5611.convert(true_p, env.board_temperature(t), self.rng["baro"])
+        comp = [ms5611.compensate(self.config.ms5611.c, a, b) for a, b in zip(d1, d2, strict=True)]
+        return {
+            "baro_time_us": self.clock.stamp(t, self.clock_faults.offset_at(t)),
+            "baro_t_s": t,
+            "baro_d1": d1, "baro_d2": d2,
+            "pressure_pa": np.array([c.pressure_pa for c in comp], dtype=np.int64),
+            "baro_temp_cdeg": np.array([c.temp_cdeg for c in comp], dtype=np.int64),
+            "truth_pressure_pa": true_p,
+        }
+
+
+def simulate(config: EmulatorConfig) -> Recording:
+    """All samples and truth of a finite run, without sockets (faults in ``.faults``)."""
+    if config.duration_s is None:
+        raise ValueError("simulate needs a finite duration_s")
+    source = SampleSource(config)
+    parts = []
+    while not source.finished:
+        parts.append(source.chunk())
+    rec = Recording.concatenate(parts)
+    rec.faults = source.counts
+    return rec

@@ -1,0 +1,120 @@
+"""Bring a reference attitude onto the IMU's time base, and measure lag between two.
+
+Reference and IMU streams have different clocks and rates (PX4 attitude at 50–250 Hz,
+a tlog's ATTITUDE at a few Hz), so the reference is interpolated at every IMU sample:
+spherical linear interpolation (slerp) between the two neighbouring reference samples,
+or the nearest one. Gaps longer than ``max_gap`` and times outside the reference give
+NaN (not scored) rather than a made-up attitude.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from estimators import quat as Q
+
+from .dataset import Reference
+
+DEFAULT_MAX_GAP_S = 1.0
+METHODS = ("slerp", "nearest")
+
+
+def reference_at(ref: Reference, t: np.ndarray, method: str = "slerp",
+                 max_gap: float = DEFAULT_MAX_GAP_S) -> np.ndarray:
+    """(N, 4) reference attitude at the times ``t``; NaN where it is unknown."""
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    t = np.asarray(t, dtype=float)
+    if ref.t.shape == t.shape and np.array_equal(ref.t, t):
+        return ref.q.copy()  # same clock (BROAD, CSV): nothing to interpolate
+    out = np.full((t.shape[0], 4), np.nan)
+    if ref.t.shape[0] == 0:
+        return out
+    if ref.t.shape[0] == 1:
+        out[np.abs(t - ref.t[0]) <= max_gap / 2] = ref.q[0]
+        return out
+    i0 = np.clip(np.searchsorted(ref.t, t, side="right") - 1, 0, ref.t.shape[0] - 2)
+    t0, t1 = ref.t[i0], ref.t[i0 + 1]
+    inside = (t >= ref.t[0]) & (t <= ref.t[-1]) & (t1 - t0 <= max_gap)
+    frac = np.clip((t - t0) / (t1 - t0), 0.0, 1.0)
+    q0, q1 = ref.q[i0], ref.q[i0 + 1]
+    if method == "nearest":
+        q = np.where((frac < 0.5)[:, None], q0, q1)
+    else:
+        # q(f) = q0 ⊗ exp(f · log(q0* ⊗ q1)): the shortest rotation, at constant rate.
+        step = Q.canonical(Q.multiply(Q.conjugate(q0), q1))
+        q = Q.multiply(q0, Q.from_rotvec(frac[:, None] * Q.to_rotvec(step)))
+    out[inside] = q[inside]
+    return out
+
+
+def angles_for_lag(q: np.ndarray) -> np.ndarray:
+    """Roll, pitch and unwrapped yaw (rad) of a stack of attitudes; NaN rows stay NaN."""
+    e = Q.to_euler(np.where(np.isfinite(q), q, 1.0))
+    e[~np.all(np.isfinite(q), axis=1)] = np.nan
+    ok = np.all(np.isfinite(e), axis=1)
+    if ok.any():
+        e[ok] = np.unwrap(e[ok], axis=0)
+    return e
+
+
+def estimate_lag(t: np.ndarray, q_est: np.ndarray, q_ref: np.ndarray,
+                 valid: np.ndarray | None = None, max_lag_s: float = 1.0,
+                 min_motion_deg: float = 1.0) -> float:
+    """Delay (s) of the estimate behind the reference, by cross-correlation.
+
+    Both attitudes become roll / pitch / unwrapped yaw, resampled on a uniform grid at
+    the median IMU step; the shift within ±``max_lag_s`` that minimises the variance of
+    their difference over the overlap (built from the cross-correlation, via FFT, and
+    running sums) is refined by a parabola through the minimum. A minimum at the edge
+    of the window gives NaN: the lag is larger than ``max_lag_s`` or not a lag at all.
+    Positive: the estimate is late. NaN when the reference barely moves (std below
+    ``min_motion_deg``): lag is not observable on a static log.
+    """
+    a_est, a_ref = angles_for_lag(q_est), angles_for_lag(q_ref)
+    ok = np.all(np.isfinite(a_est), axis=1) & np.all(np.isfinite(a_ref), axis=1)
+    if valid is not None:
+        ok &= valid
+    if ok.sum() < 16:
+        return float("nan")
+    ts = t[ok]
+    step = float(np.median(np.diff(t)))
+    grid = np.arange(ts[0], ts[-1], step)
+    if grid.shape[0] < 16:
+        return float("nan")
+    est = np.stack([np.interp(grid, ts, a_est[ok, k]) for k in range(3)], axis=1)
+    ref = np.stack([np.interp(grid, ts, a_ref[ok, k]) for k in range(3)], axis=1)
+    est, ref = est - est.mean(axis=0), ref - ref.mean(axis=0)
+    if np.degrees(ref.std(axis=0).max()) < min_motion_deg:
+        return float("nan")
+    n = grid.shape[0]
+    size = 1 << int(np.ceil(np.log2(2 * n)))
+    spec = np.fft.rfft(est, size, axis=0) * np.conj(np.fft.rfft(ref, size, axis=0))
+    xcorr = np.fft.irfft(spec, size, axis=0)  # xcorr[k] = sum_i est[i+k] * ref[i]
+    max_k = min(round(max_lag_s / step), n // 2)
+    lags = np.arange(-max_k, max_k + 1)
+    # Variance of the difference over the overlap of the shifted signals: unlike the raw
+    # cross-correlation it does not favour small lags for their longer overlap, and a
+    # constant offset (a heading offset, slow drift) does not move the minimum.
+    lo, hi = np.maximum(0, -lags), np.minimum(n, n - lags)
+    m = (hi - lo)[:, None]
+
+    def window_sums(x: np.ndarray, shift: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        c1 = np.concatenate((np.zeros((1, 3)), np.cumsum(x, axis=0)))
+        c2 = np.concatenate((np.zeros((1, 3)), np.cumsum(x**2, axis=0)))
+        return c1[hi + shift] - c1[lo + shift], c2[hi + shift] - c2[lo + shift]
+
+    s_est, s2_est = window_sums(est, lags)
+    s_ref, s2_ref = window_sums(ref, np.zeros_like(lags))
+    mean_sq = (s2_est + s2_ref - 2.0 * xcorr[lags % size]) / m
+    mse = (mean_sq - ((s_est - s_ref) / m) ** 2).sum(axis=1)
+    k = int(np.argmin(mse))
+    if k in (0, len(mse) - 1):  # at the window's edge: the true lag is beyond ±max_lag_s
+        return float("nan")
+    shift = float(lags[k])
+    # parabola through the minimum and its neighbours
+    y0, y1, y2 = mse[k - 1], mse[k], mse[k + 1]
+    denom = y0 - 2.0 * y1 + y2
+    if denom > 0:
+        shift += 0.5 * (y0 - y2) / denom
+    return shift * step

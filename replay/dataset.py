@@ -1,0 +1,113 @@
+"""What every reader produces: IMU samples and a reference attitude, each on its own clock.
+
+Readers do the unit and frame work (board profiles, Gauss/µT, FRD); everything after
+them (evaluation, plots, tuning) only sees a :class:`Recording`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+REFERENCE_KINDS = ("truth", "autopilot")
+
+
+class ReplayInputError(ValueError):
+    """A file that cannot be replayed: missing, unknown format, no IMU, no overlap..."""
+
+
+@dataclass(frozen=True)
+class TimeCleanup:
+    """Samples dropped from one stream because their timestamp did not move forward."""
+
+    kept: int = 0
+    duplicates: int = 0  # same timestamp as the previous kept sample
+    backwards: int = 0  # earlier than the previous kept sample
+    non_finite: int = 0  # NaN/inf timestamp
+
+    @property
+    def dropped(self) -> int:
+        return self.duplicates + self.backwards + self.non_finite
+
+
+@dataclass(frozen=True)
+class Reference:
+    """Attitude to score against, on its own time base.
+
+    ``q`` rotates body vectors into the recording's world frame (same body axes as the
+    IMU samples). ``kind`` is "truth" (simulator/optical ground truth) or "autopilot"
+    (the vehicle's own estimate, e.g. PX4 vehicle_attitude). NaN rows mean "no reference".
+    """
+
+    t: np.ndarray  # (M,) seconds, strictly increasing
+    q: np.ndarray  # (M, 4) [w, x, y, z]
+    kind: str
+    source: str  # where it came from, e.g. "vehicle_attitude_groundtruth"
+    cleanup: TimeCleanup = field(default_factory=TimeCleanup)
+
+    def __post_init__(self) -> None:
+        if self.kind not in REFERENCE_KINDS:
+            raise ValueError(f"reference kind must be one of {REFERENCE_KINDS}, got {self.kind!r}")
+        if self.q.shape != (self.t.shape[0], 4):
+            raise ValueError(f"reference q must be ({self.t.shape[0]}, 4), got {self.q.shape}")
+
+
+@dataclass(frozen=True)
+class Recording:
+    """IMU samples (SI units, body axes of the reference) and an optional reference.
+
+    ``mag`` is None for a 6D recording; its unit is irrelevant (only direction is used).
+    ``score_mask`` (N,) selects the IMU samples that count for the RMSE (BROAD's
+    ``movement``); None means all samples with a reference.
+    """
+
+    path: Path
+    format: str  # "ulog" | "tlog" | "npz" | "csv"
+    t: np.ndarray  # (N,) seconds, strictly increasing
+    gyr: np.ndarray  # (N, 3) rad/s
+    acc: np.ndarray  # (N, 3) m/s^2, specific force
+    mag: np.ndarray | None  # (N, 3) any unit, NaN where no sample yet
+    world: str  # "NED" | "ENU": the frame of reference.q and of the estimates
+    body: str  # description of the body axes, e.g. "FRD" or "sensor"
+    source: str  # which stream the IMU came from, e.g. "sensor_combined", "RAW_IMU"
+    reference: Reference | None = None
+    score_mask: np.ndarray | None = None
+    cleanup: TimeCleanup = field(default_factory=TimeCleanup)
+    notes: tuple[str, ...] = ()  # human-readable remarks from the reader (dropped, trimmed)
+
+    def __post_init__(self) -> None:
+        n = self.t.shape[0]
+        for name in ("gyr", "acc", "mag"):
+            arr = getattr(self, name)
+            if arr is not None and arr.shape != (n, 3):
+                raise ValueError(f"{name} must be ({n}, 3), got {arr.shape}")
+        if self.score_mask is not None and self.score_mask.shape != (n,):
+            raise ValueError(f"score_mask must be ({n},), got {self.score_mask.shape}")
+
+    @property
+    def n(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def duration(self) -> float:
+        return float(self.t[-1] - self.t[0]) if self.n > 1 else 0.0
+
+    @cached_property
+    def rate_hz(self) -> float:
+        """Median IMU rate, used as the estimators' nominal rate (dt comes from ``t``)."""
+        if self.n < 2:
+            return 1.0
+        return float(1.0 / np.median(np.diff(self.t)))
+
+    @cached_property
+    def dt(self) -> np.ndarray:
+        """Per-sample step for the estimators: the first sample gets the median step.
+
+        Cached: computed once per recording, reused by every tune grid point.
+        """
+        d = np.diff(self.t, prepend=np.nan)
+        d[0] = 1.0 / self.rate_hz
+        return d

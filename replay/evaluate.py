@@ -1,0 +1,264 @@
+"""Run estimators over a Recording in batch and score them against its reference."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+import estimators
+from estimators import metrics
+from estimators import quat as Q
+
+from .align import DEFAULT_MAX_GAP_S, estimate_lag, reference_at
+from .dataset import Recording
+
+#: Gyro-only integrators: left out of the default comparison (they only drift), still
+#: available by name with --estimator.
+GYRO_ONLY = frozenset({"euler", "dcm", "quaternion"})
+CONVERGED_DEG = 5.0  # convergence: total error below this ...
+CONVERGED_HOLD_S = 1.0  # ... for at least this long
+
+
+@dataclass(frozen=True)
+class EstimatorSpec:
+    """An estimator name with parameter overrides; ``label`` is how reports name it."""
+
+    name: str
+    params: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        if not self.params:
+            return self.name
+        return self.name + ":" + ",".join(f"{k}={v:g}" for k, v in self.params.items())
+
+
+def parse_spec(text: str) -> EstimatorSpec:
+    """``"mahony:kp=0.5,ki=0.01"`` -> EstimatorSpec; ValueError naming what is valid."""
+    name, _, rest = text.partition(":")
+    name = name.strip()
+    cls = estimators.estimator_class(name)  # ValueError listing valid names
+    params: dict[str, float] = {}
+    for item in filter(None, (s.strip() for s in rest.split(","))):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"estimator parameter {item!r} is not key=value "
+                             f"(valid keys for {name}: {cls.param_names()})")
+        params[key.strip()] = _number(value.strip(), key)
+    cls.make_params(**params)  # ValueError on unknown keys, before any work is done
+    return EstimatorSpec(name, params)
+
+
+def _number(text: str, key: str) -> float:
+    lowered = text.lower()
+    if lowered in ("true", "false"):
+        return lowered == "true"
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"parameter {key!r} must be a number, got {text!r}") from None
+
+
+def default_specs() -> list[EstimatorSpec]:
+    """Every registered estimator except the gyro-only integrators (all if that is none)."""
+    names = estimators.names()
+    chosen = [n for n in names if n not in GYRO_ONLY] or names
+    return [EstimatorSpec(n) for n in chosen]
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A recording with its reference on the IMU clock and the samples that count."""
+
+    recording: Recording
+    q_ref: np.ndarray | None  # (N, 4) or None without reference
+    scored: np.ndarray  # (N,) bool: reference known and inside the score mask
+
+
+def prepare(rec: Recording, method: str = "slerp",
+            max_gap: float = DEFAULT_MAX_GAP_S) -> Prepared:
+    if rec.reference is None:
+        return Prepared(rec, None, np.zeros(rec.n, dtype=bool))
+    q_ref = reference_at(rec.reference, rec.t, method, max_gap)
+    scored = np.all(np.isfinite(q_ref), axis=1)
+    if rec.score_mask is not None:
+        scored &= rec.score_mask
+    return Prepared(rec, q_ref, scored)
+
+
+@dataclass(frozen=True)
+class Run:
+    """One estimator's output over the recording."""
+
+    spec: EstimatorSpec
+    q: np.ndarray  # (N, 4), NaN before the estimator started
+    flags: np.ndarray  # (N,) uint8, estimators._core.F_*
+    bias: np.ndarray  # (N, 3) rad/s
+    counters: estimators.SampleCounters
+    seconds: float  # wall time of the batch run
+
+
+def run_estimator(prep: Prepared, spec: EstimatorSpec, init: str = "sensors") -> Run:
+    """Batch-run one estimator with the IMU's own time steps.
+
+    ``init="sensors"`` starts from the first usable acc(+mag) sample (the BROAD rule);
+    ``"reference"`` starts at the first sample with a reference, from that attitude (to
+    compare filters without the initial-heading question, e.g. PX4 applies declination).
+    """
+    rec = prep.recording
+    start, q0 = 0, None
+    if init == "reference":
+        if prep.q_ref is None or not prep.scored.any():
+            raise ValueError("init='reference' needs a reference attitude in the file")
+        start = int(np.argmax(np.all(np.isfinite(prep.q_ref), axis=1)))
+        q0 = prep.q_ref[start]
+    elif init != "sensors":
+        raise ValueError(f"init must be 'sensors' or 'reference', got {init!r}")
+    est = estimators.create(spec.name, rate_hz=rec.rate_hz, world=rec.world, q0=q0,
+                            **spec.params)
+    sl = slice(start, None)
+    began = time.perf_counter()
+    res = est.run(rec.gyr[sl], rec.acc[sl], None if rec.mag is None else rec.mag[sl],
+                  dt=rec.dt[sl])
+    seconds = time.perf_counter() - began
+    q = np.full((rec.n, 4), np.nan)
+    flags = np.zeros(rec.n, dtype=np.uint8)
+    bias = np.full((rec.n, 3), np.nan)
+    started = res.initialised
+    q[sl][started] = res.q[started]
+    flags[sl] = res.flags
+    bias[sl] = res.bias
+    return Run(spec, q, flags, bias, est.counters, seconds)
+
+
+@dataclass(frozen=True)
+class Score:
+    """Errors of one estimator against the reference (degrees unless named _s)."""
+
+    total_deg: float
+    heading_deg: float
+    inclination_deg: float
+    roll_deg: float  # RMS of the Euler-angle differences, wrapped to ±180°
+    pitch_deg: float
+    yaw_deg: float
+    lag_s: float  # estimate behind reference (cross-correlation); NaN if not observable
+    convergence_s: float  # until total error < CONVERGED_DEG for CONVERGED_HOLD_S; NaN: never
+    samples: int  # scored samples
+    acc_rejected_frac: float  # share of running samples with the accelerometer rejected
+    mag_rejected_frac: float
+    skipped: int  # samples the estimator could not use at all
+    run_s: float  # batch wall time
+    six_d: bool = False  # no magnetometer used: judge on inclination only (BROAD rule)
+
+    def as_json(self) -> dict[str, float | int | None]:
+        """Plain dict with NaN as None (JSON has no NaN)."""
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                for k, v in asdict(self).items()}
+
+
+def is_six_d(rec: Recording, name: str) -> bool:
+    """True when heading is unobservable: no magnetometer in the file, or an estimator
+    that declares ``uses_magnetometer = False``. BROAD judges those on inclination only."""
+    cls = estimators.estimator_class(name)
+    return rec.mag is None or not getattr(cls, "uses_magnetometer", True)
+
+
+def score(prep: Prepared, run: Run) -> Score:
+    rec = prep.recording
+    six_d = is_six_d(rec, run.spec.name)
+    keep = prep.scored & np.all(np.isfinite(run.q), axis=1)
+    running = np.all(np.isfinite(run.q), axis=1)
+    n_run = max(int(running.sum()), 1)
+    acc_rej = float(np.count_nonzero(run.flags[running] & estimators.base._core.F_ACC_REJECTED))
+    mag_rej = float(np.count_nonzero(run.flags[running] & estimators.base._core.F_MAG_REJECTED))
+    nan = float("nan")
+    if prep.q_ref is None or not keep.any():
+        return Score(nan, nan, nan, nan, nan, nan, nan, nan, 0, acc_rej / n_run,
+                     mag_rej / n_run, run.counters.skipped, run.seconds, six_d)
+    rms = metrics.rms_errors(run.q[keep], prep.q_ref[keep])
+    euler = euler_errors(run.q[keep], prep.q_ref[keep])
+    euler_rms = np.degrees(np.sqrt(np.mean(euler**2, axis=0)))
+    errors = metrics.attitude_errors(run.q, prep.q_ref)
+    return Score(
+        total_deg=rms.total_deg, heading_deg=rms.heading_deg,
+        inclination_deg=rms.inclination_deg,
+        roll_deg=float(euler_rms[0]), pitch_deg=float(euler_rms[1]), yaw_deg=float(euler_rms[2]),
+        lag_s=float(estimate_lag(rec.t, run.q, prep.q_ref, keep)),
+        convergence_s=convergence_time(rec.t, np.degrees(errors.total)),
+        samples=rms.samples, acc_rejected_frac=acc_rej / n_run,
+        mag_rejected_frac=mag_rej / n_run, skipped=run.counters.skipped, run_s=run.seconds,
+        six_d=six_d)
+
+
+def euler_errors(q_est: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
+    """(N, 3) roll/pitch/yaw differences (rad) wrapped to (-pi, pi]."""
+    d = Q.to_euler(q_est) - Q.to_euler(q_ref)
+    return np.angle(np.exp(1j * d))
+
+
+def convergence_time(t: np.ndarray, err_deg: np.ndarray, threshold: float = CONVERGED_DEG,
+                     hold_s: float = CONVERGED_HOLD_S) -> float:
+    """Seconds from the first sample until the error is below ``threshold`` for ``hold_s``.
+
+    Samples without a reference (NaN error) neither break nor count towards the hold.
+    """
+    good = np.isfinite(err_deg)
+    below = err_deg[good] < threshold
+    tg = t[good]
+    if not below.any():
+        return float("nan")
+    # Start of each run of consecutive "below" samples and where it ends.
+    edges = np.diff(np.concatenate(([0], below.astype(np.int8), [0])))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1
+    for s, e in zip(starts, ends, strict=True):
+        if tg[e] - tg[s] >= hold_s or e == len(tg) - 1:
+            return float(tg[s] - t[0])
+    return float("nan")
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Everything a report or the JSON output needs about one file."""
+
+    prepared: Prepared
+    runs: dict[str, Run]
+    scores: dict[str, Score]
+
+    @property
+    def recording(self) -> Recording:
+        return self.prepared.recording
+
+    @property
+    def reference_kind(self) -> str | None:
+        ref = self.recording.reference
+        return None if ref is None else ref.kind
+
+    def as_json(self) -> dict:
+        rec = self.recording
+        return {
+            "file": str(rec.path),
+            "format": rec.format,
+            "reference": self.reference_kind,
+            "reference_source": None if rec.reference is None else rec.reference.source,
+            "imu_source": rec.source,
+            "world": rec.world,
+            "samples": rec.n,
+            "duration_s": rec.duration,
+            "rate_hz": rec.rate_hz,
+            "dropped_imu_samples": asdict(rec.cleanup),
+            "notes": list(rec.notes),
+            "estimators": {label: s.as_json() for label, s in self.scores.items()},
+        }
+
+
+def evaluate(rec: Recording, specs: list[EstimatorSpec | str] | None = None,
+             init: str = "sensors", method: str = "slerp") -> Evaluation:
+    """Run and score every estimator (default: :func:`default_specs`)."""
+    chosen = [parse_spec(s) if isinstance(s, str) else s for s in (specs or default_specs())]
+    prep = prepare(rec, method)
+    runs = {s.label: run_estimator(prep, s, init) for s in chosen}
+    scores = {label: score(prep, r) for label, r in runs.items()}
+    return Evaluation(prep, runs, scores)

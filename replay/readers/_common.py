@@ -1,0 +1,44 @@
+"""Small helpers shared by the readers."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..dataset import Reference, ReplayInputError, TimeCleanup
+from ..timebase import monotonic_mask
+
+
+def clean_stream(t: np.ndarray, *columns: np.ndarray
+                 ) -> tuple[np.ndarray, list[np.ndarray], TimeCleanup]:
+    """Drop samples whose time does not increase (counted), applying it to every column."""
+    keep, cleanup = monotonic_mask(t)
+    return t[keep], [c[keep] for c in columns], cleanup
+
+
+def trim_before_first_mag(t: np.ndarray, mag: np.ndarray, columns: list[np.ndarray]
+                          ) -> tuple[int, np.ndarray, list[np.ndarray]]:
+    """Start the IMU stream at the first held magnetometer sample.
+
+    An estimator initialises its heading from its first usable sample; starting before
+    any magnetometer reading would fix the heading arbitrarily (yaw 0) and score a
+    spurious heading error for the whole convergence time.
+    """
+    have = np.all(np.isfinite(mag), axis=1)
+    if not have.any():
+        return 0, t, columns
+    first = int(np.argmax(have))
+    return first, t[first:], [c[first:] for c in columns]
+
+
+def make_reference(t: np.ndarray, q: np.ndarray, kind: str, source: str) -> Reference:
+    """A Reference with its time cleaned and its quaternions normalised (zero rows -> NaN)."""
+    t, (q,), cleanup = clean_stream(np.asarray(t, float), np.asarray(q, float))
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = np.where(norm > 1e-6, q / norm, np.nan)
+    return Reference(t=t, q=q, kind=kind, source=source, cleanup=cleanup)
+
+
+def require_imu(n: int, path: object, what: str) -> None:
+    if n < 2:
+        raise ReplayInputError(f"{path}: no IMU samples found (looked for {what})")

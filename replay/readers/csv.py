@@ -1,0 +1,106 @@
+"""A plain CSV format, so any logger's data can be replayed without writing a reader.
+
+Format (one header row of column names, then one row per IMU sample)::
+
+    # world: NED          optional, NED (default) or ENU: the frame of the reference
+    # reference: truth    optional, truth (default) or autopilot
+    t,gx,gy,gz,ax,ay,az,mx,my,mz,qw,qx,qy,qz,score
+    0.000,0.01,-0.02,0.00,0.1,0.2,-9.80,0.21,0.02,0.43,1,0,0,0,1
+
+* ``t`` seconds (any origin, increasing; duplicates / backwards rows are dropped and counted)
+* ``gx gy gz`` rad/s and ``ax ay az`` m/s² (specific force: about [0, 0, -9.81] level in
+  FRD/NED), body axes FRD unless the reference uses other body axes consistently
+* ``mx my mz`` optional magnetometer, any unit
+* ``qw qx qy qz`` optional reference attitude [w, x, y, z], body -> world, on the same
+  rows; empty or NaN where unknown
+* ``score`` optional 0/1: which rows count for the RMSE (default all)
+
+Lines starting with ``#`` are comments, apart from the ``key: value`` settings above.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..dataset import REFERENCE_KINDS, Recording, ReplayInputError
+from ._common import clean_stream, make_reference
+
+IMU_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
+MAG_COLUMNS = ("mx", "my", "mz")
+REF_COLUMNS = ("qw", "qx", "qy", "qz")
+
+
+def read(path: Path) -> Recording:
+    settings, header, body_start = _preamble(path)
+    missing = [c for c in IMU_COLUMNS if c not in header]
+    if missing:
+        raise ReplayInputError(f"{path}: no IMU samples found (CSV lacks columns {missing}; "
+                               f"expected {','.join(IMU_COLUMNS)}[,mx,my,mz][,qw,qx,qy,qz]"
+                               f"[,score])")
+    try:
+        table = np.genfromtxt(path, delimiter=",", skip_header=body_start, comments="#",
+                              dtype=float, ndmin=2, filling_values=np.nan)
+    except ValueError as exc:
+        raise ReplayInputError(f"{path}: malformed CSV ({exc})") from exc
+    if table.size == 0 or table.shape[1] != len(header):
+        raise ReplayInputError(f"{path}: rows must have {len(header)} values like the header")
+
+    def cols(names: tuple[str, ...]) -> np.ndarray | None:
+        if not all(n in header for n in names):
+            return None
+        return table[:, [header.index(n) for n in names]]
+
+    world = settings.get("world", "NED").upper()
+    kind = settings.get("reference", "truth").lower()
+    if world not in ("NED", "ENU") or kind not in REFERENCE_KINDS:
+        raise ReplayInputError(f"{path}: world must be NED/ENU and reference one of "
+                               f"{REFERENCE_KINDS}, got {world!r}, {kind!r}")
+    t_raw = table[:, 0 if header[0] == "t" else header.index("t")]
+    extra = [c for c in (cols(MAG_COLUMNS), cols(REF_COLUMNS), cols(("score",))) if c is not None]
+    t, (gyr, acc, *rest), cleanup = clean_stream(
+        t_raw, cols(("gx", "gy", "gz")), cols(("ax", "ay", "az")), *extra)
+    if len(t) < 2:
+        raise ReplayInputError(f"{path}: fewer than 2 IMU rows with increasing time")
+    mag = rest.pop(0) if "mx" in header and all(c in header for c in MAG_COLUMNS) else None
+    q = rest.pop(0) if all(c in header for c in REF_COLUMNS) else None
+    score = rest.pop(0)[:, 0] > 0.5 if "score" in header else None
+    ref = None if q is None else make_reference(t, q, kind, "csv qw,qx,qy,qz")
+    return Recording(path=path, format="csv", t=t, gyr=gyr, acc=acc, mag=mag, world=world,
+                     body="FRD", source="csv", reference=ref, score_mask=score,
+                     cleanup=cleanup)
+
+
+def _preamble(path: Path) -> tuple[dict[str, str], list[str], int]:
+    """``# key: value`` settings, the header's column names, and the header's line count."""
+    settings: dict[str, str] = {}
+    with path.open("r", encoding="utf-8", errors="replace") as f:
+        for number, line in enumerate(f):
+            text = line.strip()
+            if not text:
+                continue
+            if text.startswith("#"):
+                key, sep, value = text[1:].partition(":")
+                if sep:
+                    settings[key.strip().lower()] = value.strip()
+                continue
+            return settings, [c.strip().lower() for c in text.split(",")], number + 1
+    raise ReplayInputError(f"{path}: empty CSV (no header row)")
+
+
+def write(path: Path, t: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
+          mag: np.ndarray | None = None, q_ref: np.ndarray | None = None,
+          world: str = "NED", reference: str = "truth") -> None:
+    """Write arrays in this format (used to export emulator runs and in tests)."""
+    names = list(IMU_COLUMNS)
+    parts = [np.asarray(t, float)[:, None], gyr, acc]
+    if mag is not None:
+        names += MAG_COLUMNS
+        parts.append(mag)
+    if q_ref is not None:
+        names += REF_COLUMNS
+        parts.append(q_ref)
+    with Path(path).open("w", encoding="utf-8") as f:
+        f.write(f"# world: {world}\n# reference: {reference}\n{','.join(names)}\n")
+        np.savetxt(f, np.hstack(parts), delimiter=",", fmt="%.9g")

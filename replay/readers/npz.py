@@ -1,0 +1,46 @@
+"""BROAD-style ``.npz`` (Laidig et al., Data 2021): see ../shared/data/README.md.
+
+The IMU stays in its own sensor axes and the reference is sensor -> ENU, so estimators
+run with ``world="ENU"`` and start from the first acc+mag sample, exactly as the
+dataset's authors evaluate; only the ``movement`` samples are scored.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..dataset import Recording, ReplayInputError, TimeCleanup
+from ._common import make_reference
+
+REQUIRED = ("rate", "gyr", "acc")
+
+
+def read(path: Path) -> Recording:
+    try:
+        data = np.load(path, allow_pickle=False)
+    except Exception as exc:
+        raise ReplayInputError(f"{path}: not a readable .npz file ({exc})") from exc
+    with data:
+        missing = [k for k in REQUIRED if k not in data.files]
+        if missing:
+            raise ReplayInputError(f"{path}: no IMU samples found (missing keys {missing}; "
+                                   f"a BROAD-style .npz has rate, gyr, acc[, mag, quat_ref, "
+                                   f"movement])")
+        rate = float(data["rate"])
+        gyr = np.asarray(data["gyr"], dtype=float)
+        acc = np.asarray(data["acc"], dtype=float)
+        mag = np.asarray(data["mag"], dtype=float) if "mag" in data.files else None
+        q_ref = np.asarray(data["quat_ref"], dtype=float) if "quat_ref" in data.files else None
+        movement = (np.asarray(data["movement"], dtype=bool)
+                    if "movement" in data.files else None)
+    if not (np.isfinite(rate) and rate > 0):
+        raise ReplayInputError(f"{path}: rate must be a positive number, got {rate}")
+    if gyr.ndim != 2 or gyr.shape[1] != 3 or gyr.shape[0] < 2:
+        raise ReplayInputError(f"{path}: gyr must be (N>=2, 3), got {gyr.shape}")
+    t = np.arange(gyr.shape[0]) / rate  # sample k is at k / rate
+    ref = None if q_ref is None else make_reference(t, q_ref, "truth", "quat_ref (optical)")
+    return Recording(path=path, format="npz", t=t, gyr=gyr, acc=acc, mag=mag, world="ENU",
+                     body="sensor", source="npz gyr/acc/mag", reference=ref,
+                     score_mask=movement, cleanup=TimeCleanup(kept=len(t)))

@@ -1,0 +1,220 @@
+"""Grid search for one shared parameter set that minimises the mean total RMSE over files
+(mean inclination RMSE when heading is unobservable: 6D estimator or no magnetometer).
+
+BROAD's rule: one parameter set for all trials, judged by the plain mean over them. Each
+grid point runs the estimator over every file (batch, compiled) and is one task for a
+process pool; recordings are loaded once in the parent and inherited by the workers
+(fork), so only parameter dicts and a few floats cross process boundaries.
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import json
+import math
+import multiprocessing as mp
+import os
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+import estimators
+from estimators import metrics
+
+from .evaluate import EstimatorSpec, Prepared, is_six_d, run_estimator
+
+
+@dataclass(frozen=True)
+class ParamAxis:
+    """One swept parameter and its grid values."""
+
+    name: str
+    values: np.ndarray
+
+
+def parse_param(text: str) -> ParamAxis:
+    """``kp=0.1:3:30`` (30 values from 0.1 to 3 inclusive), ``kp=0.1,0.5,2`` or ``kp=1``."""
+    name, sep, spec = text.partition("=")
+    if not sep or not name.strip():
+        raise ValueError(f"--param {text!r}: expected NAME=LO:HI:N or NAME=V1,V2,...")
+    try:
+        if ":" in spec:
+            parts = spec.split(":")
+            if len(parts) != 3:
+                raise ValueError
+            lo, hi, n = float(parts[0]), float(parts[1]), int(parts[2])
+            if n < 1 or not (math.isfinite(lo) and math.isfinite(hi)):
+                raise ValueError
+            values = np.linspace(lo, hi, n)
+        else:
+            values = np.array([float(v) for v in spec.split(",")])
+    except ValueError:
+        raise ValueError(f"--param {text!r}: expected NAME=LO:HI:N (N >= 1 integer) or "
+                         f"NAME=V1,V2,... with numbers") from None
+    return ParamAxis(name.strip(), values)
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """Per grid point and file: total / heading / inclination RMSE [deg]."""
+
+    estimator: str
+    axes: tuple[ParamAxis, ...]
+    fixed: dict[str, float]
+    files: tuple[str, ...]
+    points: tuple[dict[str, float], ...]
+    total: np.ndarray  # (P, F)
+    heading: np.ndarray  # (P, F)
+    inclination: np.ndarray  # (P, F)
+    seconds: float
+    objective: str = "total"  # "inclination" for 6D estimators/files (BROAD rule)
+
+    @property
+    def mean_total(self) -> np.ndarray:
+        """Mean over files; NaN when any file failed for that grid point."""
+        return self.total.mean(axis=1)
+
+    @property
+    def mean_objective(self) -> np.ndarray:
+        """What is minimised: mean total RMSE, or mean inclination RMSE for 6D."""
+        return (self.inclination if self.objective == "inclination" else self.total).mean(axis=1)
+
+    @property
+    def best_index(self) -> int:
+        m = self.mean_objective
+        if not np.isfinite(m).any():
+            raise ValueError("no grid point produced a finite score")
+        return int(np.nanargmin(m))
+
+    @property
+    def best(self) -> dict[str, float]:
+        return {**self.fixed, **self.points[self.best_index]}
+
+    def grid(self, values: np.ndarray | None = None) -> np.ndarray:
+        """Scores reshaped to the grid: axis order as given on the command line."""
+        v = self.mean_objective if values is None else values
+        return v.reshape([len(a.values) for a in self.axes])
+
+    def write_csv(self, path: str | Path) -> None:
+        names = [a.name for a in self.axes]
+        with Path(path).open("w", newline="", encoding="utf-8") as f:
+            w = csv.writer(f)
+            w.writerow([*names, "mean_total_deg", "mean_heading_deg", "mean_inclination_deg",
+                        *(f"total_deg[{Path(p).name}]" for p in self.files)])
+            for i, point in enumerate(self.points):
+                w.writerow([*(point[n] for n in names), self.mean_total[i],
+                            self.heading[i].mean(), self.inclination[i].mean(),
+                            *self.total[i]])
+
+    def write_json(self, path: str | Path) -> None:
+        def clean(x: float) -> float | None:
+            return float(x) if math.isfinite(x) else None
+
+        doc = {
+            "estimator": self.estimator, "files": list(self.files), "fixed": self.fixed,
+            "params": {a.name: a.values.tolist() for a in self.axes},
+            "objective": f"mean {self.objective} RMSE [deg]", "best": self.best,
+            "best_mean_total_deg": clean(self.mean_total[self.best_index]),
+            "best_mean_inclination_deg": clean(self.inclination[self.best_index].mean()),
+            "seconds": self.seconds,
+            "points": [{"params": p, "mean_total_deg": clean(self.mean_total[i]),
+                        "total_deg": [clean(v) for v in self.total[i]],
+                        "inclination_deg": [clean(v) for v in self.inclination[i]]}
+                       for i, p in enumerate(self.points)],
+        }
+        Path(path).write_text(json.dumps(doc, indent=1), encoding="utf-8")
+
+
+# Set in the parent before the pool forks; workers read it instead of receiving arrays.
+_PREPARED: list[Prepared] = []
+_TASK: tuple[str, dict[str, float], str] = ("", {}, "sensors")
+
+
+def _score_point(index_params: tuple[int, dict[str, float]]) -> tuple[int, np.ndarray]:
+    """(index, [[total, heading, inclination] per file]) for one grid point."""
+    index, params = index_params
+    name, fixed, init = _TASK
+    out = np.full((len(_PREPARED), 3), np.nan)
+    spec = EstimatorSpec(name, {**fixed, **params})
+    for k, prep in enumerate(_PREPARED):
+        try:
+            run = run_estimator(prep, spec, init)
+        except ValueError:  # e.g. a parameter value the estimator refuses
+            continue
+        keep = prep.scored & np.all(np.isfinite(run.q), axis=1)
+        if keep.any():
+            r = metrics.rms_errors(run.q[keep], prep.q_ref[keep])
+            out[k] = (r.total_deg, r.heading_deg, r.inclination_deg)
+    return index, out
+
+
+class Progress:
+    """A one-line text progress bar on stderr (no dependency, redraws in place)."""
+
+    def __init__(self, total: int, stream: TextIO | None = None, width: int = 30) -> None:
+        self.total, self.done, self.width = total, 0, width
+        self.stream = stream if stream is not None else sys.stderr
+        self.started = time.perf_counter()
+
+    def advance(self, n: int = 1) -> None:
+        self.done += n
+        frac = self.done / max(self.total, 1)
+        elapsed = time.perf_counter() - self.started
+        eta = elapsed / frac - elapsed if frac > 0 else float("nan")
+        bar = "#" * int(frac * self.width)
+        self.stream.write(f"\r[{bar:<{self.width}}] {self.done}/{self.total} "
+                          f"{elapsed:6.1f} s, eta {eta:5.1f} s")
+        if self.done >= self.total:
+            self.stream.write("\n")
+        self.stream.flush()
+
+
+def sweep(prepared: Sequence[Prepared], estimator: str, axes: Sequence[ParamAxis],
+          fixed: dict[str, float] | None = None, jobs: int | None = None,
+          init: str = "sensors", progress: bool = True) -> Sweep:
+    """Score every grid point on every prepared file; ``jobs`` processes (default: cores)."""
+    global _PREPARED, _TASK
+    fixed = dict(fixed or {})
+    cls = estimators.estimator_class(estimator)
+    names = [a.name for a in axes]
+    if len(set(names)) != len(names):
+        raise ValueError(f"a parameter is swept twice: {names}")
+    cls.make_params(**{n: float(a.values[0]) for n, a in zip(names, axes, strict=True)},
+                    **fixed)  # unknown names fail here, before any work
+    if not prepared or not all(p.q_ref is not None and p.scored.any() for p in prepared):
+        raise ValueError("every file needs a reference attitude to tune against")
+    points = tuple(dict(zip(names, map(float, combo), strict=True))
+                   for combo in itertools.product(*(a.values for a in axes)))
+    _PREPARED, _TASK = list(prepared), (estimator, fixed, init)
+    jobs = max(1, min(jobs or os.cpu_count() or 1, len(points)))
+    bar = Progress(len(points)) if progress else None
+    results = np.full((len(points), len(prepared), 3), np.nan)
+    began = time.perf_counter()
+    tasks = list(enumerate(points))
+    _score_point((0, points[0]))  # compile (or load the kernel cache) once, in the parent
+    if jobs == 1:
+        for task in tasks:
+            i, r = _score_point(task)
+            results[i] = r
+            if bar:
+                bar.advance()
+    else:
+        with mp.get_context("fork").Pool(jobs) as pool:
+            chunk = max(1, len(tasks) // (jobs * 8))
+            for i, r in pool.imap_unordered(_score_point, tasks, chunksize=chunk):
+                results[i] = r
+                if bar:
+                    bar.advance()
+    seconds = time.perf_counter() - began
+    _PREPARED = []
+    six_d = any(is_six_d(p.recording, estimator) for p in prepared)
+    return Sweep(estimator, tuple(axes), fixed,
+                 tuple(str(p.recording.path) for p in prepared), points,
+                 results[:, :, 0], results[:, :, 1], results[:, :, 2], seconds,
+                 "inclination" if six_d else "total")

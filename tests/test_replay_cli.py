@@ -1,0 +1,121 @@
+"""`attitude-bridge replay` / `tune` end to end, and clear errors for bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from bridge.cli import main
+from replay import ReplayInputError, load
+from replay.readers import csv as csv_format
+from replay.synthetic import SyntheticConfig, generate
+
+os.environ["MAVLINK20"] = "1"
+
+
+def test_replay_json_per_spec(data_dir, tmp_path, capsys):
+    out = tmp_path / "r.json"
+    path = data_dir / "logs" / "pyulog_sample_logging_tagged_and_default_params.ulg"
+    code = main(["replay", str(path), "--estimator", "mahony:kp=0.5,ki=0.01",
+                 "--estimator", "quaternion", "--json", str(out)])
+    assert code == 0
+    doc = json.loads(out.read_text())
+    assert doc["file"] == str(path) and doc["reference"] == "truth"
+    assert set(doc["estimators"]) == {"mahony:kp=0.5,ki=0.01", "quaternion"}
+    for scores in doc["estimators"].values():
+        for key in ("total_deg", "heading_deg", "inclination_deg", "lag_s"):
+            assert key in scores
+        assert scores["total_deg"] >= scores["inclination_deg"] > 0
+    assert "mahony:kp=0.5,ki=0.01" in capsys.readouterr().out
+
+
+def test_tune_cli_writes_sweep(tmp_path, capsys):
+    rec = generate(SyntheticConfig(duration_s=10.0, seed=5))
+    path = tmp_path / "s.csv"
+    csv_format.write(path, rec.t, rec.gyr, rec.acc, rec.mag, rec.reference.q)
+    out = tmp_path / "sweep.csv"
+    code = main(["tune", str(path), "--estimator", "mahony", "--param", "kp=0.05:5:4",
+                 "--set", "ki=0", "--jobs", "1", "--out", str(out), "-q"])
+    assert code == 0
+    lines = out.read_text().splitlines()
+    assert lines[0].startswith("kp,mean_total_deg") and len(lines) == 5
+    totals = [float(line.split(",")[1]) for line in lines[1:]]
+    best_kp = float(lines[1 + int(np.argmin(totals))].split(",")[0])
+    assert f"best mahony: ki=0, kp={best_kp:.6g}" in capsys.readouterr().out
+
+
+def test_csv_round_trip_and_time_cleanup(tmp_path):
+    rec = generate(SyntheticConfig(duration_s=1.0, seed=6))
+    path = tmp_path / "x.csv"
+    csv_format.write(path, rec.t, rec.gyr, rec.acc, rec.mag, rec.reference.q, world="NED")
+    rows = path.read_text().splitlines()
+    # duplicate row 10 and put row 20 (earlier time) after row 30
+    body = rows[3:]
+    body = [*body[:11], body[10], *body[11:31], body[20], *body[31:]]
+    path.write_text("\n".join(rows[:3] + body) + "\n")
+    back = load(path)
+    assert back.n == rec.n
+    assert back.cleanup.duplicates == 1 and back.cleanup.backwards == 1
+    np.testing.assert_allclose(back.gyr, rec.gyr, rtol=1e-8)
+    np.testing.assert_allclose(back.reference.q, rec.reference.q, rtol=1e-8, atol=1e-9)
+
+
+def test_missing_file_is_a_clear_error(tmp_path, capsys):
+    assert main(["replay", str(tmp_path / "nope.ulg")]) == 2
+    assert "no such file" in capsys.readouterr().err
+
+
+def test_unknown_format_is_a_clear_error(tmp_path, capsys):
+    path = tmp_path / "data.bin"
+    path.write_bytes(bytes(range(256)) * 4)
+    assert main(["replay", str(path)]) == 2
+    assert "unknown log format" in capsys.readouterr().err
+
+
+def test_unknown_estimator_lists_valid_names(data_dir, capsys):
+    path = data_dir / "logs" / "pyulog_sample_log_small.ulg"
+    assert main(["replay", str(path), "-e", "kalmann"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown estimator 'kalmann'" in err and "mahony" in err
+    assert main(["replay", str(path), "-e", "mahony:gain=2"]) == 2
+    assert "kp" in capsys.readouterr().err
+
+
+def test_tlog_without_imu(tmp_path):
+    from pymavlink.dialects.v20 import common
+
+    mav = common.MAVLink(None, srcSystem=1, srcComponent=1)
+    path = tmp_path / "heartbeats.tlog"
+    with path.open("wb") as f:
+        for i in range(5):
+            msg = common.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3)
+            f.write(int(1e6 * (1000 + i)).to_bytes(8, "big") + msg.pack(mav))
+    with pytest.raises(ReplayInputError, match="no IMU samples found"):
+        load(path)
+
+
+def test_csv_and_npz_without_imu(tmp_path):
+    csv_path = tmp_path / "att.csv"
+    csv_path.write_text("t,qw,qx,qy,qz\n0,1,0,0,0\n0.1,1,0,0,0\n")
+    with pytest.raises(ReplayInputError, match="no IMU samples found"):
+        load(csv_path)
+    npz_path = tmp_path / "x.npz"
+    np.savez(npz_path, quat_ref=np.zeros((3, 4)))
+    with pytest.raises(ReplayInputError, match="no IMU samples found"):
+        load(npz_path)
+
+
+def test_corrupt_ulog_is_a_clear_error(tmp_path):
+    path = tmp_path / "broken.ulg"
+    path.write_bytes(b"ULog\x01\x12\x35" + b"\x00" * 40)
+    with pytest.raises(ReplayInputError, match=r"broken\.ulg"):
+        load(path)
+
+
+def test_asking_for_missing_truth_is_an_error(data_dir, capsys):
+    path = data_dir / "logs" / "pyulog_sample_log_small.ulg"  # real flight: no groundtruth
+    assert main(["replay", str(path), "--reference", "truth", "-e", "mahony"]) == 2
+    assert "no truth attitude" in capsys.readouterr().err

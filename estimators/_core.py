@@ -54,8 +54,8 @@ COUNTER_NAMES = (
 P_ACC_RANGE = 0  # full scale [m/s^2]: an axis at >= 99.9 % of it is saturated
 P_GYR_RANGE = 1  # full scale [rad/s]
 P_MAX_DT = 2  # longest usable step [s]
-P_ENU = 3  # 1.0: output in ENU
-N_COMMON = 4
+P_OUT = 3  # state[3:7]: output rotation W, out = W ⊗ q (NED -> ENU and/or declination)
+N_COMMON = 7
 
 # --- per-estimator workspace (float64) for update_one ------------------------------
 # ws = [header | state | params | common | counters | out(4)]; the header holds where
@@ -75,7 +75,6 @@ F_ACC_UNUSABLE = 16
 
 _SAT_FRACTION = 0.999
 _ACC_MIN_NORM = 1e-3  # m/s^2: below this the direction of gravity is meaningless
-_HALF_SQRT2 = math.sqrt(0.5)
 
 
 @njit(cache=True, inline="always")
@@ -214,19 +213,26 @@ def init_from_acc_mag(state: np.ndarray, ax: float, ay: float, az: float, mx: fl
     set_q_from_dcm(state, nx, ny, nz, ex, ey, ez, dx, dy, dz)
 
 
-@njit(cache=True)
-def write_output(state: np.ndarray, enu: bool, out: np.ndarray) -> None:
-    """out ← attitude in the requested world frame (NED internally)."""
+@njit(cache=True, inline="always")
+def rotate_output(state: np.ndarray, common: np.ndarray) -> tuple:
+    """W ⊗ q: the attitude relative to the requested world frame (magnetic NED inside).
+
+    W (from ``output_rotation``) is the identity, the NED -> ENU swap, a rotation about
+    the vertical by the magnetic declination, or both.
+    """
     w, x, y, z = state[0], state[1], state[2], state[3]
-    if enu:
-        # Q_NED_ENU ⊗ q with Q_NED_ENU = [0, s, s, 0], s = sqrt(1/2)
-        s = _HALF_SQRT2
-        out[0] = s * (-x - y)
-        out[1] = s * (w + z)
-        out[2] = s * (w - z)
-        out[3] = s * (y - x)
-    else:
-        out[0], out[1], out[2], out[3] = w, x, y, z
+    pw, px = common[P_OUT], common[P_OUT + 1]
+    py, pz = common[P_OUT + 2], common[P_OUT + 3]
+    return (pw * w - px * x - py * y - pz * z,
+            pw * x + px * w + py * z - pz * y,
+            pw * y - px * z + py * w + pz * x,
+            pw * z + px * y - py * x + pz * w)
+
+
+@njit(cache=True)
+def write_output(state: np.ndarray, common: np.ndarray, out: np.ndarray) -> None:
+    """out ← attitude in the requested world frame."""
+    out[0], out[1], out[2], out[3] = rotate_output(state, common)
 
 
 _VEC = types.float64[::1]
@@ -259,15 +265,10 @@ def workspace_views(ws: np.ndarray) -> tuple:
 
 
 @njit(cache=True, inline="always")
-def write_output_row(state: np.ndarray, enu: bool, Q: np.ndarray, i: int) -> None:
+def write_output_row(state: np.ndarray, common: np.ndarray, Q: np.ndarray, i: int) -> None:
     """Q[i] ← write_output, without a row view (whose reference counting costs more
     than the arithmetic in a batch loop)."""
-    w, x, y, z = state[0], state[1], state[2], state[3]
-    if enu:
-        s = _HALF_SQRT2
-        Q[i, 0], Q[i, 1], Q[i, 2], Q[i, 3] = s * (-x - y), s * (w + z), s * (w - z), s * (y - x)
-    else:
-        Q[i, 0], Q[i, 1], Q[i, 2], Q[i, 3] = w, x, y, z
+    Q[i, 0], Q[i, 1], Q[i, 2], Q[i, 3] = rotate_output(state, common)
 
 
 def make_kernels(step):
@@ -339,12 +340,11 @@ def make_kernels(step):
                 return -1
             flags = process(state, params, common, g[0], g[1], g[2], a[0], a[1], a[2],
                             m[0], m[1], m[2], True, dt, counters)
-        write_output(state, common[P_ENU] > 0.0, ws[n_end:n_end + W_OUT])
+        write_output(state, common, ws[n_end:n_end + W_OUT])
         return flags
 
     def run_batch(state, params, common, G, A, M, has_mag, dts, counters,
                   Q, B, F) -> None:
-        enu = common[P_ENU] > 0.0
         single_dt = dts.shape[0] == 1
         for i in range(G.shape[0]):
             dt = dts[0] if single_dt else dts[i]
@@ -352,7 +352,7 @@ def make_kernels(step):
             F[i] = process(state, params, common, G[i, 0], G[i, 1], G[i, 2],
                            A[i, 0], A[i, 1], A[i, 2], M[j, 0], M[j, 1], M[j, 2],
                            has_mag, dt, counters)
-            write_output_row(state, enu, Q, i)
+            write_output_row(state, common, Q, i)
             B[i, 0], B[i, 1], B[i, 2] = state[B0], state[B0 + 1], state[B0 + 2]
 
     return _cached_njit(update_one, step), _cached_njit(run_batch, step)

@@ -42,6 +42,9 @@ class CommonParams:
     gyr_range: float = param(math.radians(2000.0), "gyro full scale [rad/s]; saturation is "
                                                    "counted (the clipped rate still integrates)")
     max_dt: float = param(0.5, "longest usable time step [s]; longer gaps are skipped")
+    declination: float = param(0.0, "magnetic declination [rad], east positive: the output "
+                                    "heading is relative to true north (magnetic + "
+                                    "declination) instead of magnetic north")
 
 
 @dataclass(frozen=True)
@@ -119,7 +122,7 @@ class Estimator:
             self._state_size,
             np.ascontiguousarray(self._pack_params(self.params), dtype=float).ravel(),
             np.array([self.params.acc_range, self.params.gyr_range, self.params.max_dt,
-                      1.0 if self.world == "ENU" else 0.0]))
+                      *self.output_rotation]))
         (self._state, self._params_vec, self._common, self._counters,
          self._out) = _core.workspace_views(self._ws)
         self._q0 = None if q0 is None else np.array(q0, dtype=float)
@@ -150,6 +153,13 @@ class Estimator:
                 raise ValueError(f"parameter {key!r} must be a number, got {value!r}")
         return cls.Params(**params)
 
+    @property
+    def output_rotation(self) -> np.ndarray:
+        """W with ``q_world = W ⊗ q_internal``: estimators work in magnetic NED; the
+        declination turns magnetic into true north, then NED becomes ENU if asked."""
+        w = Q.from_axis_angle(np.array([0.0, 0.0, 1.0]), self.params.declination)
+        return Q.ned_to_enu(w) if self.world == "ENU" else w
+
     def _pack_params(self, p: CommonParams) -> np.ndarray:
         return np.zeros(1)
 
@@ -167,7 +177,7 @@ class Estimator:
             q = Q.normalize(self._q0)
             if q.shape != (4,) or not np.all(np.isfinite(q)):
                 raise ValueError(f"q0 must be a finite non-zero quaternion, got {self._q0!r}")
-            state[0:4] = Q.enu_to_ned(q) if self.world == "ENU" else q
+            state[0:4] = Q.multiply(Q.conjugate(self.output_rotation), q)
             state[_core.INIT] = 1.0
         self._init_private(state, self.params)
         self._state[:] = state
@@ -177,7 +187,7 @@ class Estimator:
     @property
     def q(self) -> np.ndarray:
         """Current attitude [w, x, y, z], body -> world."""
-        type(self)._write_output(self._state, self.world == "ENU", self._out)
+        type(self)._write_output(self._state, self._common, self._out)
         return self._out.copy()
 
     @property

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "estimators.cli",
     "hil.cli",
+    "bridge.run_cli",
     "replay.cli",
 )
 

@@ -206,35 +206,39 @@ def tilt() -> Profile:
                         Channel())
 
 
-FLIGHT_TAKEOFF_S = 6.0
+FLIGHT_GROUND_S = 5.0
+FLIGHT_TAKEOFF_S = FLIGHT_GROUND_S + 6.0
 FLIGHT_CYCLE_S = 24.0
 
 
 def flight(duration_s: float) -> Profile:
-    """Take-off to 10 m, hover, then repeated cycles of manoeuvres, yaw turns and climbs.
+    """On the ground, take-off to 10 m, hover, then cycles of manoeuvres, yaw turns, climbs.
 
-    Each 24 s cycle: roll and pitch manoeuvres (±20-25°) with the horizontal motion they
-    cause, a 90° and a -180° yaw turn, a 5 m climb and descent, and a gentle 0.4 Hz
-    roll wobble; every cycle ends level at hover height, so any duration works.
+    The first 5 s the vehicle stands still on the ground (boot and arming, when a real
+    board's estimator learns its gyro bias). Each 24 s cycle: roll and pitch manoeuvres
+    (±20-25°) with the horizontal motion they cause (2-3 m repositioning, peak ≈ 1 m/s²,
+    a hover-and-manoeuvre flight rather than a race), a 90° and a -180° yaw turn, a 5 m
+    climb and descent, and a gentle 0.4 Hz roll wobble; every cycle ends level at hover
+    height, so any duration works.
     """
     roll, pitch, yaw = Channel(), Channel(), Channel()
     north, east, down = Channel(), Channel(), Channel()
-    down.ramp(1.0, 4.0, -10.0)  # take-off
+    down.ramp(FLIGHT_GROUND_S, 5.0, -10.0)  # take-off
     cycles = max(1, math.ceil((duration_s - FLIGHT_TAKEOFF_S) / FLIGHT_CYCLE_S))
     for k in range(cycles):
         c = FLIGHT_TAKEOFF_S + k * FLIGHT_CYCLE_S
         roll.ramp(c + 0.0, 1.0, _deg(20)).ramp(c + 2.0, 1.0, _deg(-20))
-        east.ramp(c + 0.5, 3.0, 4.0)
+        east.ramp(c + 0.5, 4.0, 2.0)
         pitch.ramp(c + 3.5, 1.0, _deg(-15)).ramp(c + 5.5, 1.0, _deg(15))
-        north.ramp(c + 4.0, 3.0, 6.0)
+        north.ramp(c + 4.0, 4.0, 3.0)
         yaw.ramp(c + 7.0, 3.0, _deg(90))
         down.ramp(c + 10.0, 4.0, -5.0)
         roll.ramp(c + 12.0, 0.8, _deg(-25)).ramp(c + 13.6, 0.8, _deg(25))
         yaw.ramp(c + 15.0, 4.0, _deg(-180))
         down.ramp(c + 16.0, 4.0, 5.0)
         pitch.ramp(c + 20.0, 1.0, _deg(20)).ramp(c + 22.0, 1.0, _deg(-20))
-        north.ramp(c + 20.5, 3.0, -6.0)
-        east.ramp(c + 20.5, 3.0, -4.0)
+        north.ramp(c + 19.5, 4.0, -3.0)
+        east.ramp(c + 19.5, 4.0, -2.0)
         roll.wobbles.append(Wobble(_deg(4.0), 0.4, c, 9))
     return EulerProfile("flight", roll, pitch, yaw, north, east, down)
 

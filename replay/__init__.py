@@ -10,11 +10,13 @@ The command line (``attitude-bridge replay`` / ``tune``) lives in ``replay.cli``
 
 from __future__ import annotations
 
+from estimators.spec import EstimatorSpec
+
 from .dataset import Recording, Reference, ReplayInputError, TimeCleanup
-from .evaluate import EstimatorSpec, Evaluation, Score, evaluate, parse_spec
+from .evaluate import Evaluation, Score, evaluate
 from .readers import load
 
 __all__ = [
     "EstimatorSpec", "Evaluation", "Recording", "Reference", "ReplayInputError", "Score",
-    "TimeCleanup", "evaluate", "load", "parse_spec",
+    "TimeCleanup", "evaluate", "load",
 ]

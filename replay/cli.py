@@ -74,10 +74,12 @@ def _load(path: Path, args: argparse.Namespace):
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from .evaluate import evaluate, parse_spec
+    from estimators.spec import EstimatorSpec
+
+    from .evaluate import evaluate
 
     try:
-        specs = [parse_spec(s) for s in args.estimator] or None
+        specs = [EstimatorSpec.parse(s) for s in args.estimator] or None
         rec = _load(args.file, args)
         if args.reference != "auto" and rec.reference is None:
             raise ReplayInputError(f"{args.file}: no {args.reference} attitude in this file")
@@ -117,12 +119,14 @@ def _print_table(ev) -> None:
 
 
 def _tune(args: argparse.Namespace) -> int:
-    from .evaluate import parse_spec, prepare
+    from estimators.spec import EstimatorSpec
+
+    from .evaluate import prepare
     from .tune import parse_param, sweep
 
     try:
         axes = [parse_param(p) for p in args.param]
-        fixed = parse_spec(f"{args.estimator}:{','.join(args.set)}").params
+        fixed = EstimatorSpec.parse(f"{args.estimator}:{','.join(args.set)}").params
         prepared = []
         for path in args.files:
             prep = prepare(_load(path, args))

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
 import estimators
 from estimators import metrics
 from estimators import quat as Q
+from estimators.spec import EstimatorSpec
 
 from .align import DEFAULT_MAX_GAP_S, estimate_lag, reference_at
 from .dataset import Recording
@@ -20,46 +21,6 @@ from .dataset import Recording
 GYRO_ONLY = frozenset({"euler", "dcm", "quaternion"})
 CONVERGED_DEG = 5.0  # convergence: total error below this ...
 CONVERGED_HOLD_S = 1.0  # ... for at least this long
-
-
-@dataclass(frozen=True)
-class EstimatorSpec:
-    """An estimator name with parameter overrides; ``label`` is how reports name it."""
-
-    name: str
-    params: dict[str, float] = field(default_factory=dict)
-
-    @property
-    def label(self) -> str:
-        if not self.params:
-            return self.name
-        return self.name + ":" + ",".join(f"{k}={v:g}" for k, v in self.params.items())
-
-
-def parse_spec(text: str) -> EstimatorSpec:
-    """``"mahony:kp=0.5,ki=0.01"`` -> EstimatorSpec; ValueError naming what is valid."""
-    name, _, rest = text.partition(":")
-    name = name.strip()
-    cls = estimators.estimator_class(name)  # ValueError listing valid names
-    params: dict[str, float] = {}
-    for item in filter(None, (s.strip() for s in rest.split(","))):
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ValueError(f"estimator parameter {item!r} is not key=value "
-                             f"(valid keys for {name}: {cls.param_names()})")
-        params[key.strip()] = _number(value.strip(), key)
-    cls.make_params(**params)  # ValueError on unknown keys, before any work is done
-    return EstimatorSpec(name, params)
-
-
-def _number(text: str, key: str) -> float:
-    lowered = text.lower()
-    if lowered in ("true", "false"):
-        return lowered == "true"
-    try:
-        return float(text)
-    except ValueError:
-        raise ValueError(f"parameter {key!r} must be a number, got {text!r}") from None
 
 
 def default_specs() -> list[EstimatorSpec]:
@@ -257,7 +218,8 @@ class Evaluation:
 def evaluate(rec: Recording, specs: list[EstimatorSpec | str] | None = None,
              init: str = "sensors", method: str = "slerp") -> Evaluation:
     """Run and score every estimator (default: :func:`default_specs`)."""
-    chosen = [parse_spec(s) if isinstance(s, str) else s for s in (specs or default_specs())]
+    chosen = [EstimatorSpec.parse(s) if isinstance(s, str) else s
+              for s in (specs or default_specs())]
     prep = prepare(rec, method)
     runs = {s.label: run_estimator(prep, s, init) for s in chosen}
     scores = {label: score(prep, r) for label, r in runs.items()}

@@ -26,8 +26,9 @@ import numpy as np
 
 import estimators
 from estimators import metrics
+from estimators.spec import EstimatorSpec
 
-from .evaluate import EstimatorSpec, Prepared, is_six_d, run_estimator
+from .evaluate import Prepared, is_six_d, run_estimator
 
 
 @dataclass(frozen=True)

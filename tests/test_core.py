@@ -248,3 +248,22 @@ def test_declination_turns_magnetic_into_true_heading(name, world):
         # q0 given in the output frame round-trips through the internal magnetic frame
         est2 = estimators.create(name, world=world, declination=declination, q0=q)
         assert Q.angle_between(est2.q, q) < 1e-12
+
+
+def test_estimator_spec_parses_overrides_and_names_what_is_valid():
+    from estimators.spec import EstimatorSpec
+
+    spec = EstimatorSpec.parse("mahony:kp=0.5,mag_mode=full,exact=true")
+    assert spec.params == {"kp": 0.5, "mag_mode": "full", "exact": True}
+    assert spec.label == "mahony:kp=0.5,mag_mode=full,exact=True"
+    est = spec.create(200.0, declination=0.1)
+    assert est.params.kp == 0.5 and est.params.declination == 0.1
+    # the spec's own override wins over a site-wide default
+    assert EstimatorSpec.parse("eskf:declination=0.2").create(declination=0.1
+                                                               ).params.declination == 0.2
+    with pytest.raises(ValueError, match="valid"):
+        EstimatorSpec.parse("nosuch")
+    with pytest.raises(ValueError, match="kp"):
+        EstimatorSpec.parse("mahony:kq=1")
+    with pytest.raises(ValueError, match="k=v"):
+        EstimatorSpec.parse("mahony:kp")

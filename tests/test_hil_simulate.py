@@ -118,7 +118,8 @@ def test_noise_density_matches_configuration():
 
 
 def test_barometer_follows_altitude():
-    rec = simulate(EmulatorConfig(profile="flight", duration_s=8.0))
+    # the flight profile stands 5 s on the ground, then climbs 10 m in 5 s
+    rec = simulate(EmulatorConfig(profile="flight", duration_s=11.0))
     assert np.all(np.abs(rec.pressure_pa - rec.truth_pressure_pa) < 8.0)  # 1.2 Pa rms noise
     assert rec.pressure_pa[0] - rec.pressure_pa[-1] > 100.0  # climbed 10 m (~120 Pa)
     board_c = EmulatorConfig().environment.board_temperature(rec.baro_t_s)

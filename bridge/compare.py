@@ -1,0 +1,139 @@
+"""Live comparison of the estimators with references: truth and the vehicle's own attitude.
+
+References, per vehicle:
+
+* ``truth`` — HIL_STATE_QUATERNION, stamped by the same board clock as the IMU, so
+  errors are scored at zero shift; the lag is reported separately;
+* ``vehicle`` — the autopilot's ATTITUDE_QUATERNION (or ATTITUDE): PX4 stamps these with
+  their *publish* time, not the sample time, so the time offset between the two series
+  is estimated (the shift that minimises the error) and errors are scored at it.
+
+Errors are the BROAD total / heading / inclination RMS (``estimators.metrics``) over a
+rolling window. The "lag" of a series against the reference is the shift ``τ`` that
+best explains ``estimate(t) ≈ reference(t - τ)``, from a grid search.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimators import metrics
+from estimators import quat as Q
+
+from .ring import TimeRing
+
+TRUTH, VEHICLE = "truth", "vehicle"
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """One estimator against one reference over the window."""
+
+    total_deg: float
+    heading_deg: float
+    inclination_deg: float
+    # Best shift τ in estimate(t + τ) ≈ reference(t). Truth: τ > 0 is the estimator's
+    # lag. Vehicle: the offset used for scoring; τ < 0 means its stamps are late by -τ.
+    lag_s: float
+    samples: int
+
+    def to_dict(self) -> dict[str, float]:
+        return {"total_deg": round(self.total_deg, 3), "heading_deg": round(self.heading_deg, 3),
+                "inclination_deg": round(self.inclination_deg, 3),
+                "lag_s": round(self.lag_s, 4), "samples": self.samples}
+
+
+def _nearest(t_src: np.ndarray, t_query: np.ndarray) -> np.ndarray:
+    """Index into sorted ``t_src`` of the sample nearest to each query time."""
+    i = np.clip(np.searchsorted(t_src, t_query), 1, len(t_src) - 1)
+    left_closer = (t_query - t_src[i - 1]) < (t_src[i] - t_query)
+    return i - left_closer
+
+
+def _error_at_shift(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
+                    q_ref: np.ndarray, shift: float, max_gap: float) -> tuple[np.ndarray, ...]:
+    """Reference samples and the estimates at (their time + shift), within max_gap."""
+    query = t_ref + shift
+    idx = _nearest(t_est, query)
+    ok = (np.abs(t_est[idx] - query) <= max_gap) & (query >= t_est[0]) & (query <= t_est[-1])
+    return q_est[idx[ok]], q_ref[ok]
+
+
+def compare_series(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
+                   q_ref: np.ndarray, shifts: np.ndarray, score_at_best: bool,
+                   max_points: int = 400) -> Comparison | None:
+    """Score an estimate series against a reference series (both sorted by time)."""
+    if len(t_est) < 2 or len(t_ref) < 2:
+        return None
+    order = np.argsort(t_est, kind="stable")
+    t_est, q_est = t_est[order], q_est[order]
+    step = max(1, len(t_ref) // max_points)
+    t_r, q_r = t_ref[::step], q_ref[::step]
+    max_gap = 2.0 * float(np.median(np.diff(t_est))) + 1e-4
+    best_shift, best_rms = 0.0, np.inf
+    for shift in shifts:
+        e, r = _error_at_shift(t_est, q_est, t_r, q_r, float(shift), max_gap)
+        if len(e) < max(3, len(t_r) // 4):
+            continue
+        rms = float(np.sqrt(np.mean(Q.angle_between(e, r) ** 2)))
+        if rms < best_rms:
+            best_shift, best_rms = float(shift), rms
+    if not np.isfinite(best_rms):
+        return None
+    e, r = _error_at_shift(t_est, q_est, t_ref, q_ref, best_shift if score_at_best else 0.0,
+                           max_gap)
+    if len(e) == 0:
+        return None
+    err = metrics.rms_errors(e, r)
+    return Comparison(err.total_deg, err.heading_deg, err.inclination_deg, best_shift,
+                      err.samples)
+
+
+class References:
+    """Reference attitudes of one vehicle, as they arrive."""
+
+    def __init__(self, capacity: int = 20000) -> None:
+        self.series = {TRUTH: TimeRing(capacity, 4), VEHICLE: TimeRing(capacity, 4)}
+        self._vehicle_has_quaternion = False
+
+    def add_truth(self, t: float, q: np.ndarray) -> None:
+        self.series[TRUTH].push(t, q)
+
+    def add_vehicle_quaternion(self, t: float, q: np.ndarray) -> None:
+        self._vehicle_has_quaternion = True
+        self.series[VEHICLE].push(t, q)
+
+    def add_vehicle_euler(self, t: float, roll: float, pitch: float, yaw: float) -> None:
+        """ATTITUDE is used only when the vehicle sends no ATTITUDE_QUATERNION."""
+        if not self._vehicle_has_quaternion:
+            self.series[VEHICLE].push(t, Q.from_euler(roll, pitch, yaw))
+
+
+#: Shift grids [s]: the estimate lags truth (>= 0); the vehicle's stamps may be late or
+#: early relative to the IMU sample times, so its offset is searched both ways.
+TRUTH_SHIFTS = np.arange(0.0, 0.2001, 0.002)
+VEHICLE_SHIFTS = np.arange(-0.3, 0.3001, 0.004)
+
+
+def compare_all(history: dict[str, TimeRing], refs: References,
+                window_s: float = 10.0) -> dict[str, dict[str, Comparison]]:
+    """{reference: {estimator label: Comparison}} over the last ``window_s`` seconds."""
+    out: dict[str, dict[str, Comparison]] = {}
+    for ref_name, ring in refs.series.items():
+        if len(ring) < 2:
+            continue
+        t_ref, q_ref = ring.snapshot(ring.last_t - window_s)
+        shifts = TRUTH_SHIFTS if ref_name == TRUTH else VEHICLE_SHIFTS
+        results = {}
+        for label, est_ring in history.items():
+            t_est, q_est = est_ring.snapshot(ring.last_t - window_s - 1.0)
+            valid = np.all(np.isfinite(q_est), axis=1)
+            c = compare_series(t_est[valid], q_est[valid], t_ref, q_ref, shifts,
+                               score_at_best=(ref_name == VEHICLE))
+            if c is not None:
+                results[label] = c
+        if results:
+            out[ref_name] = results
+    return out

@@ -1,0 +1,122 @@
+"""Bridge settings: one dataclass, filled from the command line or a TOML file.
+
+TOML keys are the field names below (``estimators`` is a list of ``"name:k=v,..."``
+strings, ``outs`` a list of URLs); command-line options override the file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import estimators
+from estimators.spec import EstimatorSpec
+
+from .boards import PROFILES
+from .ingest import IMU_MESSAGE_NAMES
+from .mav import BRIDGE_COMPONENT_ID
+from .rotations import rotation_matrix
+
+#: Preferred default primary estimator, first one available wins.
+DEFAULT_ESTIMATORS = ("eskf", "mahony", "madgwick", "quaternion")
+
+
+def default_estimator() -> str:
+    available = estimators.names()
+    for name in DEFAULT_ESTIMATORS:
+        if name in available:
+            return name
+    return available[0]
+
+
+@dataclass
+class BridgeConfig:
+    """Everything the bridge service needs to run."""
+
+    connect: str | None = None  # None: start the built-in emulator as the source
+    estimators: list[str] = field(default_factory=list)  # "name[:k=v,...]"; first = primary
+    outs: list[str] = field(default_factory=list)
+    mqtt: str | None = None  # mqtt://[user:pass@]host:port or mqtts://...
+    mqtt_username: str | None = None
+    mqtt_password: str | None = None
+    mqtt_tls: bool = False
+    mqtt_ca: str | None = None
+    mqtt_cert: str | None = None
+    mqtt_key: str | None = None
+    mqtt_rate: float = 10.0  # per-estimator attitude messages per second per source
+    mqtt_prefix: str = "attitude"
+    board: str = "gy86"
+    rotation: str = "NONE"
+    # Magnetic declination [deg, east positive]: estimators find magnetic north, MAVLink
+    # and the truth use true north. None: 0, or the emulator's when it is the source.
+    declination_deg: float | None = None
+    imu_message: str = "RAW_IMU"  # which IMU stream to request from the vehicle
+    imu_rate: float = 250.0  # requested IMU rate [Hz]; also the estimators' nominal rate
+    out_rate: float = 50.0  # ATTITUDE(_QUATERNION) per second per source; <= 0: every sample
+    component_id: int = BRIDGE_COMPONENT_ID
+    system_id: int = 1  # heartbeat sysid until a vehicle is heard
+    signing_key: str | None = None  # env:NAME, file:PATH or a path; enables MAVLink 2 signing
+    allow_unsigned: bool = False
+    jump_s: float = 0.1  # shortest timestamp step treated as a clock jump / outage
+    reorder_s: float = 0.5  # how far back a late sample is considered reordered
+    window_s: float = 10.0  # live comparison window
+    status_period_s: float = 1.0
+    duration: float | None = None  # stop after this many seconds
+    table: bool = False  # live table on stdout
+    # Built-in emulator (no --connect): profile, seed, IMU message, faster than real time.
+    emulator_profile: str = "flight"
+    emulator_seed: int = 1
+    emulator_fast: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.estimators:
+            self.estimators = [default_estimator()]
+
+    @property
+    def estimator_specs(self) -> list[EstimatorSpec]:
+        return [EstimatorSpec.parse(text) for text in self.estimators]
+
+    def validate(self) -> None:
+        """Raise ValueError naming the bad setting, before anything is started."""
+        from .links import parse_url
+
+        if self.connect:
+            parse_url(self.connect)
+        for url in self.outs:
+            parse_url(url)
+        for spec in self.estimator_specs:
+            spec.validate()
+        if self.board not in PROFILES:
+            raise ValueError(f"unknown board {self.board!r}; valid: {sorted(PROFILES)}")
+        rotation_matrix(self.rotation)
+        if self.imu_message not in IMU_MESSAGE_NAMES:
+            raise ValueError(f"unknown IMU message {self.imu_message!r}; "
+                             f"valid: {sorted(IMU_MESSAGE_NAMES)}")
+        if not 1 <= self.component_id <= 255 or not 1 <= self.system_id <= 255:
+            raise ValueError("component_id and system_id must be in 1..255")
+        if self.mqtt:
+            from .mqtt import MqttSettings
+
+            MqttSettings.from_url(self.mqtt)
+        if self.imu_rate <= 0:
+            raise ValueError("imu_rate must be positive")
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> BridgeConfig:
+        return cls.from_dict(tomllib.loads(Path(path).read_text()))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> BridgeConfig:
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ValueError(f"unknown setting(s) {unknown}; valid: {sorted(names)}")
+        return cls(**data)
+
+    def merged(self, **overrides: Any) -> BridgeConfig:
+        """A copy with every override that is not None (or an empty list) applied."""
+        changes = {k: v for k, v in overrides.items() if v is not None and v != []}
+        return dataclasses.replace(self, **changes)

@@ -1,0 +1,94 @@
+"""MAVLink output: the primary estimate as ATTITUDE_QUATERNION + ATTITUDE, and HEARTBEAT.
+
+Messages are sent as (vehicle sysid, bridge component id) — a companion computer
+speaks for the vehicle it sits on — to the connection and every ``--out`` link.
+``out_rate`` decimates per source on *board* time, so the rate is exact whatever the
+packet timing; ``out_rate <= 0`` sends every sample.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from .ingest import SourceKey
+from .links import Link
+from .mav import mavlink
+from .pipeline import Estimate
+from .ring import TimeRing
+
+_NO_OFFSET = [1.0, 0.0, 0.0, 0.0]  # repr_offset_q: no display rotation
+
+
+def euler_zyx(q: np.ndarray) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) of a unit quaternion, Z-Y-X, yaw in (-pi, pi] (scalar, fast)."""
+    w, x, y, z = float(q[0]), float(q[1]), float(q[2]), float(q[3])
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    if yaw <= -math.pi:
+        yaw += 2.0 * math.pi
+    return roll, pitch, yaw
+
+
+class AttitudeOutput:
+    """Decimates and sends the primary estimate; measures in->out latency."""
+
+    def __init__(self, links: Sequence[Link], component_id: int, out_rate: float,
+                 latency_samples: int = 4096) -> None:
+        self.links = list(links)
+        self.component_id = component_id
+        self.period = 1.0 / out_rate if out_rate > 0 else 0.0
+        self._next_t: dict[SourceKey, float] = {}
+        self.sent: dict[int, int] = {}  # per sysid: estimates sent
+        self.latency = TimeRing(latency_samples, 1)  # seconds, IMU read -> output written
+
+    def offer(self, est: Estimate) -> bool:
+        """Send ``est`` if it is due under the output rate; True if sent."""
+        if self.period:
+            due = self._next_t.get(est.key)
+            if due is not None and est.t < due - 1e-6:
+                if est.t < due - 2.0 * self.period:  # time went back (resync): restart
+                    self._next_t[est.key] = est.t
+                return False
+            # Step the schedule, not the sample time, so the average rate is exact.
+            nxt = est.t + self.period if due is None or est.t > due + self.period else \
+                due + self.period
+            self._next_t[est.key] = nxt
+        self.send_estimate(est)
+        return True
+
+    def send_estimate(self, est: Estimate) -> None:
+        q, r = est.q, est.rates
+        rates = (float(r[0]), float(r[1]), float(r[2]))
+        roll, pitch, yaw = euler_zyx(q)
+        aq = mavlink.MAVLink_attitude_quaternion_message(
+            est.time_boot_ms, float(q[0]), float(q[1]), float(q[2]), float(q[3]),
+            *rates, _NO_OFFSET)
+        att = mavlink.MAVLink_attitude_message(est.time_boot_ms, roll, pitch, yaw, *rates)
+        sysid = est.key.sysid
+        pair = (aq, att)
+        for link in self.links:
+            link.send_many(pair, sysid, self.component_id)
+        self.sent[sysid] = self.sent.get(sysid, 0) + 1
+        self.latency.push(0.0, np.array([time.perf_counter() - est.arrival]))
+
+    def send_heartbeat(self, sysids: Sequence[int]) -> None:
+        """One HEARTBEAT per vehicle we speak for, as an onboard controller."""
+        hb = mavlink.MAVLink_heartbeat_message(
+            mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
+            mavlink.MAV_STATE_ACTIVE, 3)
+        for sysid in sysids:
+            for link in self.links:
+                link.send(hb, sysid, self.component_id)
+
+    def latency_percentiles_ms(self) -> dict[str, float]:
+        _, v = self.latency.snapshot()
+        if not len(v):
+            return {}
+        p50, p90, p99 = np.percentile(v[:, 0], [50, 90, 99]) * 1e3
+        return {"p50": round(float(p50), 3), "p90": round(float(p90), 3),
+                "p99": round(float(p99), 3), "max": round(float(v[:, 0].max() * 1e3), 3)}

@@ -1,0 +1,103 @@
+"""Estimators per IMU source: every accepted sample goes through all of them.
+
+The first estimator spec is the primary one: its attitude is what the bridge sends
+over MAVLink. All of them keep a short history for the live comparison and are
+published on MQTT.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+import estimators
+from estimators.spec import EstimatorSpec
+
+from .ingest import ImuSample, SourceKey
+from .ring import TimeRing
+
+
+def warm_up(spec: EstimatorSpec) -> None:
+    """Compile the estimator's kernels now (they are cached on disk), so that the first
+    live sample does not stall the event loop on JIT compilation."""
+    est = spec.create(100.0)
+    est.update(np.zeros(3), np.array([0.0, 0.0, -9.8]), np.array([0.2, 0.0, 0.4]), 0.01)
+    est.update(np.zeros(3), np.array([0.0, 0.0, -9.8]), None, 0.01)
+
+
+@dataclass(slots=True)
+class Estimate:
+    """The primary estimator's output for one sample, ready to publish."""
+
+    key: SourceKey
+    t: float  # board time [s]
+    time_boot_ms: int
+    q: np.ndarray  # [w, x, y, z] body FRD -> NED
+    rates: np.ndarray  # bias-corrected body rates [rad/s]
+    arrival: float  # perf_counter() when the IMU packet was read
+
+
+class SourcePipeline:
+    """All estimators of one source, with a short history of each one's attitude."""
+
+    def __init__(self, key: SourceKey, specs: list[EstimatorSpec], rate_hz: float,
+                 history: int, declination_rad: float = 0.0) -> None:
+        self.key = key
+        self.labels = [s.label for s in specs]
+        # The estimators turn their magnetic-north attitude to true north themselves.
+        self.estimators = [s.create(rate_hz, declination=declination_rad) for s in specs]
+        self.history = {label: TimeRing(history, 4) for label in self.labels}
+        self.last_sample: ImuSample | None = None
+        self.samples = 0
+
+    def process(self, sample: ImuSample) -> Estimate:
+        primary_q = None
+        for label, est in zip(self.labels, self.estimators, strict=True):
+            q = est.update(sample.gyr, sample.acc, sample.mag, sample.dt)
+            self.history[label].push(sample.t, q)
+            if primary_q is None:
+                primary_q = q
+        self.samples += 1
+        self.last_sample = sample
+        primary = self.estimators[0]
+        rates = sample.gyr - primary.bias
+        return Estimate(self.key, sample.t, sample.time_boot_ms, primary_q, rates,
+                        sample.arrival)
+
+    def status(self, label: str) -> estimators.EstimatorStatus:
+        return self.estimators[self.labels.index(label)].status
+
+
+class Pipeline:
+    """Creates a :class:`SourcePipeline` the first time a source is heard."""
+
+    def __init__(self, specs: list[EstimatorSpec], rate_hz: float = 1000.0,
+                 history_s: float = 10.0, declination_deg: float = 0.0) -> None:
+        if not specs:
+            raise ValueError("at least one estimator is needed")
+        labels = [s.label for s in specs]
+        if len(set(labels)) != len(labels):
+            raise ValueError(f"estimators listed twice: {labels}")
+        for spec in specs:
+            warm_up(spec)
+        self.specs = specs
+        self.declination_rad = math.radians(declination_deg)
+        self.rate_hz = rate_hz
+        # Sized for the faster of the nominal rate and 2 kHz: the nominal rate is only
+        # what was requested, the stream may well be faster.
+        self.history = max(16, math.ceil(history_s * max(rate_hz, 2000.0) * 1.25))
+        self.sources: dict[SourceKey, SourcePipeline] = {}
+
+    @property
+    def primary_label(self) -> str:
+        return self.specs[0].label
+
+    def process(self, sample: ImuSample) -> Estimate:
+        src = self.sources.get(sample.key)
+        if src is None:
+            src = SourcePipeline(sample.key, self.specs, self.rate_hz, self.history,
+                                 self.declination_rad)
+            self.sources[sample.key] = src
+        return src.process(sample)

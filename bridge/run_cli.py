@@ -1,0 +1,141 @@
+"""`attitude-bridge run` and `attitude-bridge demo`."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import signal
+import sys
+
+import estimators
+
+from .config import BridgeConfig
+
+log = logging.getLogger(__name__)
+
+#: What `demo` compares side by side unless --estimator is given (first = primary).
+DEMO_ESTIMATORS = ("eskf", "mahony", "madgwick", "kalman")
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--estimator", action="append", dest="estimators", metavar="NAME[:k=v,...]",
+                   help="estimator to run (repeatable); the first is primary and goes out "
+                        "over MAVLink (default: eskf)")
+    p.add_argument("--out", action="append", dest="outs", metavar="URL",
+                   help="extra MAVLink output, e.g. udpout:127.0.0.1:14550 (repeatable)")
+    p.add_argument("--mqtt", metavar="URL", help="publish to MQTT: mqtt://[user:pass@]host:port "
+                                                 "or mqtts://... (TLS)")
+    p.add_argument("--mqtt-username")
+    p.add_argument("--mqtt-password")
+    p.add_argument("--mqtt-tls", action="store_true", default=None, help="use TLS")
+    p.add_argument("--mqtt-ca", metavar="FILE", help="CA bundle for the broker's certificate")
+    p.add_argument("--mqtt-cert", metavar="FILE", help="client certificate (mutual TLS)")
+    p.add_argument("--mqtt-key", metavar="FILE", help="client key (mutual TLS)")
+    p.add_argument("--mqtt-rate", type=float, metavar="HZ",
+                   help="attitude messages per estimator per second (default 10)")
+    p.add_argument("--board", choices=("gy86", "ardupilot"),
+                   help="what RAW_IMU integers mean (default gy86)")
+    p.add_argument("--rotation", metavar="NAME",
+                   help="board mounting rotation, PX4/ArduPilot name, e.g. YAW_90")
+    p.add_argument("--declination", dest="declination_deg", type=float, metavar="DEG",
+                   help="magnetic declination, east positive: report true north (default 0; "
+                        "the built-in emulator's own when it is the source)")
+    p.add_argument("--imu-message", choices=("RAW_IMU", "SCALED_IMU", "SCALED_IMU2",
+                                             "SCALED_IMU3", "HIGHRES_IMU"),
+                   help="IMU stream to request from the vehicle (default RAW_IMU)")
+    p.add_argument("--imu-rate", type=float, metavar="HZ",
+                   help="IMU rate to request (MAV_CMD_SET_MESSAGE_INTERVAL), default 250")
+    p.add_argument("--out-rate", type=float, metavar="HZ",
+                   help="ATTITUDE/ATTITUDE_QUATERNION rate per vehicle, <= 0: every sample "
+                        "(default 50)")
+    p.add_argument("--component-id", type=int, metavar="ID", help="own component id (191)")
+    p.add_argument("--signing-key", metavar="env:VAR|file:PATH",
+                   help="MAVLink 2 signing key: 64 hex digits or a passphrase; unsigned "
+                        "input is then rejected and counted")
+    p.add_argument("--allow-unsigned", action="store_true", default=None,
+                   help="with --signing-key: accept unsigned input too")
+    p.add_argument("--config", metavar="FILE.toml", help="settings file (options override it)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--profile", dest="emulator_profile", metavar="NAME",
+                   help="built-in emulator's motion profile (no --connect), default flight")
+    p.add_argument("--seed", dest="emulator_seed", type=int, help="built-in emulator seed")
+    p.add_argument("--fast", dest="emulator_fast", action="store_true", default=None,
+                   help="run the built-in emulator faster than real time")
+    p.add_argument("-v", "--verbose", action="store_true")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    run = subparsers.add_parser(
+        "run", help="run the bridge: MAVLink IMU in, attitude out over MAVLink and MQTT",
+        description="Estimate attitude from a vehicle's IMU stream. With no --connect, the "
+                    "built-in GY-86 emulator is started as the source.")
+    run.add_argument("--connect", metavar="URL",
+                     help="udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or a serial "
+                          "device (/dev/ttyUSB0:921600)")
+    run.add_argument("--table", action="store_true", default=None, help="show the live table")
+    _add_common(run)
+    run.set_defaults(func=lambda a: main(a, demo=False))
+    demo = subparsers.add_parser(
+        "demo", help="emulator + bridge in one process, with the live table and a summary",
+        description="Runs the HIL emulator and the bridge together and shows the estimate "
+                    "against the emulator's truth.")
+    _add_common(demo)
+    demo.set_defaults(func=lambda a: main(a, demo=True), connect=None, table=True)
+
+
+def config_from_args(args: argparse.Namespace, demo: bool) -> BridgeConfig:
+    base = BridgeConfig.from_toml(args.config) if args.config else BridgeConfig()
+    overrides = {k: getattr(args, k) for k in (
+        "connect", "estimators", "outs", "mqtt", "mqtt_username", "mqtt_password", "mqtt_tls",
+        "mqtt_ca", "mqtt_cert", "mqtt_key", "mqtt_rate", "board", "rotation", "declination_deg",
+        "imu_message",
+        "imu_rate", "out_rate", "component_id", "signing_key", "allow_unsigned", "duration",
+        "table", "emulator_profile", "emulator_seed", "emulator_fast")}
+    if demo:
+        overrides["connect"] = None
+        if not args.estimators and not args.config:
+            overrides["estimators"] = [n for n in DEMO_ESTIMATORS if n in estimators.names()]
+        if base.duration is None and args.duration is None:
+            overrides["duration"] = 30.0
+    cfg = base.merged(**overrides)
+    if demo:
+        cfg.connect = None
+    return cfg
+
+
+async def serve(cfg: BridgeConfig) -> int:
+    """Run until SIGINT/SIGTERM or the configured duration; print the summary."""
+    from .emulator import builtin_emulator, emulator_declination_deg
+    from .service import BridgeService
+    from .table import LiveTable, summary
+
+    emulator = None
+    if not cfg.connect:
+        emulator = builtin_emulator(cfg)
+        if cfg.declination_deg is None:
+            cfg.declination_deg = emulator_declination_deg()
+    service = BridgeService(cfg, emulator)
+    if cfg.table:
+        service.on_status = LiveTable()
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError):
+            loop.add_signal_handler(sig, stop.set)
+    await service.run(stop)
+    print(summary(service), flush=True)
+    return 0
+
+
+def main(args: argparse.Namespace, demo: bool) -> int:
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        cfg = config_from_args(args, demo)
+        cfg.validate()
+    except (ValueError, OSError) as exc:
+        print(f"attitude-bridge: {exc}", file=sys.stderr)
+        return 2
+    return asyncio.run(serve(cfg))

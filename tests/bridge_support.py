@@ -1,0 +1,232 @@
+"""Real-socket helpers for the bridge tests: a pymavlink IMU sender and a UDP listener.
+
+Not a test module: imported by tests/test_bridge_*.py. Everything here uses real UDP
+sockets on 127.0.0.1 and real pymavlink encoding.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import math
+import socket
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bridge import boards
+from bridge.config import BridgeConfig
+from bridge.mav import mavlink
+from bridge.service import BridgeService
+from estimators import quat as Q
+
+G = 9.80665
+#: A magnetic field in NED [gauss]: north and down (inclination ~60°), no declination.
+MAG_NED = np.array([0.25, 0.0, 0.43])
+ZERO3 = np.zeros(3)
+ZERO3.setflags(write=False)
+
+
+@dataclass
+class UdpListener:
+    """Collects every MAVLink message sent to its port (a stand-in GCS).
+
+    Drains its socket completely on each wake-up (4 MB buffer), so a --fast emulator
+    in the same event loop cannot overflow it.
+    """
+
+    messages: list = field(default_factory=list)
+    parser: mavlink.MAVLink = field(default_factory=lambda: mavlink.MAVLink(None, 255, 0))
+    sock: socket.socket | None = None
+
+    async def start(self) -> int:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 * 1024 * 1024)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.setblocking(False)
+        asyncio.get_running_loop().add_reader(self.sock.fileno(), self._readable)
+        return self.port
+
+    def _readable(self) -> None:
+        while self.sock is not None:
+            try:
+                data = self.sock.recv(65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                continue
+            now = time.perf_counter()
+            try:
+                msgs = self.parser.parse_buffer(data) or []
+            except Exception:  # corrupted datagrams from the fault tests
+                self.parser = mavlink.MAVLink(None, 255, 0)
+                continue
+            self.parser.buf, self.parser.buf_index = bytearray(), 0  # whole datagrams only
+            self.parser.expected_length = mavlink.HEADER_LEN_V1 + 2
+            for msg in msgs:
+                if not isinstance(msg, mavlink.MAVLink_bad_data):
+                    self.messages.append((now, msg))
+
+    @property
+    def port(self) -> int:
+        return self.sock.getsockname()[1]
+
+    def sendto(self, data: bytes, addr: tuple) -> None:
+        self.sock.sendto(data, addr)
+
+    def of_type(self, name: str, sysid: int | None = None) -> list:
+        return [m for _, m in self.messages if m.get_type() == name and
+                (sysid is None or m.get_srcSystem() == sysid)]
+
+    def close(self) -> None:
+        if self.sock is not None:
+            with contextlib.suppress(Exception):
+                asyncio.get_running_loop().remove_reader(self.sock.fileno())
+            self.sock.close()
+            self.sock = None
+
+
+class MavSender:
+    """Sends real MAVLink 2 packets from one (sysid, compid) over a UDP socket.
+
+    It also listens on its socket: the bridge (udpin) replies to whoever sent to it, so
+    the sender doubles as the vehicle side of the link.
+    """
+
+    def __init__(self, port: int, sysid: int = 1, compid: int = 1,
+                 signing_key: bytes | None = None) -> None:
+        self.target = ("127.0.0.1", port)
+        self.mav = mavlink.MAVLink(None, sysid, compid)
+        if signing_key is not None:
+            self.mav.signing.secret_key = signing_key
+            self.mav.signing.sign_outgoing = True
+            self.mav.signing.timestamp = int((time.time() - 1420070400) * 1e5)
+        self.listener = UdpListener()
+        if signing_key is not None:  # verify what comes back: get_signed() is then True
+            self.listener.parser.signing.secret_key = signing_key
+
+    async def start(self) -> None:
+        await self.listener.start()
+
+    def pack(self, msg: mavlink.MAVLink_message) -> bytes:
+        buf = msg.pack(self.mav)
+        self.mav.seq = (self.mav.seq + 1) % 256
+        return buf
+
+    def send_bytes(self, data: bytes) -> None:
+        self.listener.sendto(data, self.target)
+
+    def send(self, msg: mavlink.MAVLink_message) -> bytes:
+        buf = self.pack(msg)
+        self.send_bytes(buf)
+        return buf
+
+    def close(self) -> None:
+        self.listener.close()
+
+
+def gy86_counts(q: np.ndarray, omega_frd: np.ndarray = ZERO3,
+                mag_ned: np.ndarray = MAG_NED) -> tuple[list[int], list[int], list[int]]:
+    """RAW_IMU integers (acc, gyro, mag) a GY-86 would read at attitude q (FRD->NED)."""
+    p = boards.gy86()
+    back = p.to_frd.T  # FRD -> chip axes (the matrix is its own inverse)
+    acc_frd = Q.rotate(Q.conjugate(q), np.array([0.0, 0.0, -G]))
+    mag_frd = Q.rotate(Q.conjugate(q), mag_ned)
+    acc = np.round(back @ acc_frd / p.accel_scale).astype(int).tolist()
+    gyr = np.round(back @ omega_frd / p.gyro_scale).astype(int).tolist()
+    mag = np.round(back @ mag_frd / p.mag_scale).astype(int).tolist()
+    return acc, gyr, mag
+
+
+def raw_imu(time_usec: int, q: np.ndarray, omega: np.ndarray = ZERO3,
+            imu_id: int = 0) -> mavlink.MAVLink_raw_imu_message:
+    acc, gyr, mag = gy86_counts(q, omega)
+    return mavlink.MAVLink_raw_imu_message(time_usec, *acc, *gyr, *mag, imu_id, 2500)
+
+
+def attitude_of(msgs: list) -> np.ndarray:
+    """Quaternions of ATTITUDE_QUATERNION messages, (N, 4)."""
+    return np.array([[m.q1, m.q2, m.q3, m.q4] for m in msgs])
+
+
+def angle_deg(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    return np.degrees(Q.angle_between(q1, q2))
+
+
+@contextlib.asynccontextmanager
+async def running_bridge(**settings):
+    """A BridgeService on udpin:127.0.0.1:<free port>, stopped (and awaited) on exit."""
+    settings.setdefault("connect", "udpin:127.0.0.1:0")
+    cfg = BridgeConfig(**settings)
+    service = BridgeService(cfg)
+    stop = asyncio.Event()
+    task = asyncio.create_task(service.run(stop))
+    await service.ready.wait()
+    try:
+        yield service
+    finally:
+        stop.set()
+        await asyncio.wait_for(task, 5.0)
+
+
+async def send_static(sender: MavSender, q: np.ndarray, seconds: float, rate_hz: float = 500.0,
+                      t0_us: int = 1_000_000, burst: int = 25) -> int:
+    """Stream RAW_IMU of a vehicle at rest at attitude q; returns the next time_usec."""
+    n = int(seconds * rate_hz)
+    step = round(1e6 / rate_hz)
+    t = t0_us
+    for i in range(n):
+        sender.send(raw_imu(t, q))
+        t += step
+        if i % burst == burst - 1:
+            await asyncio.sleep(burst / rate_hz)
+    return t
+
+
+def euler_q(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarray:
+    return Q.from_euler(math.radians(roll_deg), math.radians(pitch_deg), math.radians(yaw_deg))
+
+
+def rotating(q0: np.ndarray, omega_frd: np.ndarray, t: float) -> np.ndarray:
+    """Attitude after t seconds at a constant body rate: q0 ⊗ exp(ω t / 2)."""
+    return Q.normalize(Q.multiply(q0, Q.from_rotvec(np.asarray(omega_frd) * t)))
+
+
+async def send_rotating(sender: MavSender, q0: np.ndarray, omega: np.ndarray, seconds: float,
+                        rate_hz: float = 500.0, t0_us: int = 1_000_000,
+                        burst: int = 25) -> int:
+    """Stream RAW_IMU of a constant-rate rotation; returns the next time_usec."""
+    step = round(1e6 / rate_hz)
+    for i in range(int(seconds * rate_hz)):
+        t_us = t0_us + i * step
+        sender.send(raw_imu(t_us, rotating(q0, omega, (t_us - t0_us) * 1e-6), omega))
+        if i % burst == burst - 1:
+            await asyncio.sleep(burst / rate_hz)
+    return t0_us + int(seconds * rate_hz) * step
+
+
+def async_test(fn):
+    """Run an async test function in a fresh event loop (no pytest plugin needed)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        return asyncio.run(fn(*args, **kwargs))
+
+    return wrapper
+
+
+async def wait_until(condition, timeout: float = 5.0, period: float = 0.05) -> bool:
+    """Poll ``condition()`` until true or timeout (for delivery under CPU load)."""
+    deadline = asyncio.get_running_loop().time() + timeout
+    while not condition():
+        if asyncio.get_running_loop().time() > deadline:
+            return False
+        await asyncio.sleep(period)
+    return True
+
+
+def accepted(bridge, sysid: int = 1) -> int:
+    """IMU samples the bridge accepted from a vehicle so far."""
+    return sum(s.accepted for k, s in bridge.ingest.sources.items() if k.sysid == sysid)

@@ -1,0 +1,223 @@
+"""The bridge over real UDP sockets with a pymavlink 'vehicle' and a pymavlink listener."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+import numpy as np
+import pytest
+from bridge_support import (
+    MavSender,
+    UdpListener,
+    accepted,
+    angle_deg,
+    async_test,
+    attitude_of,
+    euler_q,
+    raw_imu,
+    rotating,
+    running_bridge,
+    send_rotating,
+    send_static,
+    wait_until,
+)
+
+from bridge.codec import signing_key_from_text
+from bridge.mav import mavlink
+
+OMEGA = np.radians([0.0, 0.0, 40.0])  # yaw rate of the test motion
+
+
+def scored(listener: UdpListener, q0, omega, sysid=1, t0_us=1_000_000):
+    """Angle (deg) between each ATTITUDE_QUATERNION and the motion's truth at its stamp."""
+    msgs = listener.of_type("ATTITUDE_QUATERNION", sysid)
+    est = attitude_of(msgs)
+    truth = np.array([rotating(q0, omega, m.time_boot_ms * 1e-3 - t0_us * 1e-6) for m in msgs])
+    return msgs, angle_deg(est, truth)
+
+
+@async_test
+async def test_attitude_out_heartbeat_and_rate():
+    listener = UdpListener()
+    out_port = await listener.start()
+    q0 = euler_q(12.0, -8.0, 20.0)
+    async with running_bridge(estimators=["mahony", "quaternion"],
+                              outs=[f"udpout:127.0.0.1:{out_port}"], out_rate=50.0) as bridge:
+        vehicle = MavSender(bridge.port)
+        await vehicle.start()
+        await send_rotating(vehicle, q0, OMEGA, 3.0)
+        await wait_until(lambda: accepted(bridge) == 1500)
+        await asyncio.sleep(1.2)  # at least one more heartbeat
+        status = bridge.last_status[1]
+    msgs, err = scored(listener, q0, OMEGA)
+    assert len(msgs) > 100
+    assert np.max(err[10:]) < 1.5, err.max()
+    assert {m.get_srcComponent() for m in msgs} == {191}
+    assert {m.get_srcSystem() for m in msgs} == {1}
+    # time_boot_ms is the board time of a sample (2 ms grid from t0 = 1 s), rate 50 Hz.
+    stamps = np.array([m.time_boot_ms for m in msgs])
+    assert np.all((stamps - 1000) % 2 == 0)
+    assert np.median(np.diff(stamps)) == 20
+    # Rates are the bias-corrected gyro: the yaw rate of the motion.
+    assert np.median([m.yawspeed for m in msgs]) == pytest.approx(OMEGA[2], abs=0.01)
+    att = listener.of_type("ATTITUDE")
+    assert len(att) == len(msgs)
+    q_from_euler = np.array([euler_q(*np.degrees([a.roll, a.pitch, a.yaw])) for a in att])
+    assert np.max(angle_deg(q_from_euler, attitude_of(msgs))) < 0.01
+    hb = [m for m in listener.of_type("HEARTBEAT") if m.get_srcComponent() == 191]
+    assert len(hb) >= 3
+    assert hb[0].type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER
+    assert hb[0].autopilot == mavlink.MAV_AUTOPILOT_INVALID
+    # The vehicle side of the connection gets the same output (udpin answers its peer).
+    assert len(vehicle.listener.of_type("ATTITUDE_QUATERNION")) == len(msgs)
+    assert status["samples"] == 1500 and status["sent"] == len(msgs)
+    vehicle.close()
+    listener.close()
+
+
+@async_test
+async def test_requests_imu_stream_and_repeats_when_it_stops():
+    async with running_bridge(imu_rate=200.0, imu_message="HIGHRES_IMU") as bridge:
+        vehicle = MavSender(bridge.port)
+        await vehicle.start()
+        for _ in range(4):  # heartbeats only, no IMU: the request must be repeated
+            vehicle.send(mavlink.MAVLink_heartbeat_message(
+                mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0, 0, 4, 3))
+            await asyncio.sleep(1.0)
+        cmds = vehicle.listener.of_type("COMMAND_LONG")
+    assert len(cmds) >= 2
+    c = cmds[0]
+    assert c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+    assert c.param1 == mavlink.MAVLINK_MSG_ID_HIGHRES_IMU and c.param2 == pytest.approx(5000.0)
+    assert (c.target_system, c.target_component, c.get_srcComponent()) == (1, 1, 191)
+    vehicle.close()
+
+
+@async_test
+async def test_two_vehicles_on_one_port_are_estimated_separately():
+    qa, qb = euler_q(10.0, 5.0, 30.0), euler_q(-20.0, 15.0, -120.0)
+    async with running_bridge(out_rate=0.0) as bridge:
+        va, vb = MavSender(bridge.port, sysid=1), MavSender(bridge.port, sysid=2)
+        await va.start()
+        await vb.start()
+        await asyncio.gather(send_rotating(va, qa, OMEGA, 2.0),
+                             send_rotating(vb, qb, -OMEGA, 2.0))
+        await wait_until(lambda: len(va.listener.of_type("ATTITUDE_QUATERNION")) >= 2000 and
+                         len(vb.listener.of_type("ATTITUDE_QUATERNION")) >= 2000)
+        bridge.publish_status()
+        status = dict(bridge.last_status)
+    # Each vehicle's own socket sees both vehicles' output (udpin answers all peers).
+    for sender, q0, omega, sysid in ((va, qa, OMEGA, 1), (vb, qb, -OMEGA, 2)):
+        msgs, err = scored(sender.listener, q0, omega, sysid)
+        assert len(msgs) == 1000  # out_rate 0: every sample
+        assert np.max(err[5:]) < 1.5
+    assert {s for s in status} == {1, 2}
+    va.close()
+    vb.close()
+
+
+@async_test
+async def test_bad_input_is_counted_never_crashes():
+    q0 = euler_q(5.0, -5.0, 45.0)
+    async with running_bridge(out_rate=0.0, estimators=["mahony"]) as bridge:
+        v = MavSender(bridge.port)
+        await v.start()
+        t = await send_static(v, q0, 0.5, t0_us=10_000_000)  # 250 good samples
+        step = 2000
+        # Corrupt bytes: random junk, a packet with a flipped payload byte, a truncated one.
+        v.send_bytes(b"\xfd\x09junk\x00\xff" * 3)
+        bad = bytearray(v.pack(raw_imu(t, q0)))
+        bad[15] ^= 0x55
+        v.send_bytes(bytes(bad))
+        v.send_bytes(v.pack(raw_imu(t, q0))[:12])
+        # Duplicate (same packet twice), reordered pair, isolated jump and step back.
+        pkt = v.pack(raw_imu(t, q0))
+        v.send_bytes(pkt)
+        v.send_bytes(pkt)
+        a, b = v.pack(raw_imu(t + step, q0)), v.pack(raw_imu(t + 2 * step, q0))
+        v.send_bytes(b)
+        v.send_bytes(a)
+        v.send(raw_imu(t + 3 * step + 5_000_000, q0))  # 5 s ahead, once
+        v.send(raw_imu(t + 3 * step, q0))
+        v.send(raw_imu(t - 3_000_000, q0))  # 3 s back, once
+        v.send(raw_imu(t + 4 * step, q0))
+        # NaN / inf via HIGHRES_IMU floats, and a saturated accelerometer.
+        v.send(mavlink.MAVLink_highres_imu_message(
+            t + 5 * step, 0, 0, -9.8, math.nan, 0, 0, 0.2, 0, 0.4, 0, 0, 0, 0, 0, 0))
+        sat = raw_imu(t + 6 * step, q0)
+        sat.xacc = 32767
+        v.send(sat)
+        t = t + 7 * step
+        await asyncio.sleep(0.2)
+        # The peer vanishes for 1.5 s (board clock keeps running), then comes back.
+        await asyncio.sleep(1.5)
+        t = await send_static(v, q0, 0.6, t0_us=t + 1_500_000)
+        last_ms = (t - 2000) // 1000
+        await wait_until(lambda: any(m.time_boot_ms == last_ms for m in
+                                     v.listener.of_type("ATTITUDE_QUATERNION")[-5:]))
+        bridge.publish_status()
+        status = bridge.last_status[1]
+    drops, flags, conn = status["drops"], status["flags"], status["connection"]
+    assert drops["duplicate"] == 1
+    assert drops["reordered"] == 1
+    assert drops["jump"] == 1 and drops["backwards"] == 1
+    assert drops["nonfinite"] == 1
+    assert flags["acc_saturated"] == 1
+    assert conn["bad_crc"] == 1 and conn["truncated"] == 1 and conn["bad_frame"] >= 1
+    # The return after the outage is a timeline the bridge re-synchronises to.
+    assert flags["resync"] == 1 and drops["clock_step"] == 2
+    msgs = v.listener.of_type("ATTITUDE_QUATERNION")
+    assert np.max(angle_deg(attitude_of(msgs[-50:]), q0)) < 1.0
+    assert all(np.all(np.isfinite([m.q1, m.q2, m.q3, m.q4])) for m in msgs)
+    v.close()
+
+
+@async_test
+async def test_signing_rejects_unsigned_and_signs_output(tmp_path):
+    key_file = tmp_path / "key"
+    key_file.write_text("bridge test passphrase")
+    key = signing_key_from_text("bridge test passphrase")
+    q0 = euler_q(0.0, 10.0, 0.0)
+    async with running_bridge(signing_key=f"file:{key_file}", out_rate=0.0) as bridge:
+        intruder = MavSender(bridge.port, sysid=7)
+        await intruder.start()
+        await send_static(intruder, q0, 0.2)  # 100 unsigned samples
+        good = MavSender(bridge.port, sysid=1, signing_key=key)
+        await good.start()
+        await send_static(good, q0, 0.2)
+        await wait_until(lambda: len(good.listener.of_type("ATTITUDE_QUATERNION")) >= 100)
+        conn = bridge.link_status()
+        vehicles = set(bridge.vehicles)
+    assert conn["unsigned_rejected"] == 100
+    assert vehicles == {1}
+    msgs = good.listener.of_type("ATTITUDE_QUATERNION")
+    assert len(msgs) == 100 and all(m.get_signed() for m in msgs)
+    intruder.close()
+    good.close()
+
+
+@async_test
+async def test_live_comparison_with_the_vehicles_late_stamped_attitude():
+    """The vehicle's own ATTITUDE_QUATERNION stamped 30 ms late (publish time): the
+    bridge finds the offset and scores its estimate at it."""
+    q0 = euler_q(5.0, 5.0, 0.0)
+    async with running_bridge(estimators=["quaternion"], window_s=3.0) as bridge:
+        v = MavSender(bridge.port)
+        await v.start()
+        rate, t0 = 500.0, 1_000_000
+        for i in range(int(3.0 * rate)):
+            t_us = t0 + i * 2000
+            q = rotating(q0, OMEGA, (t_us - t0) * 1e-6)
+            v.send(raw_imu(t_us, q, OMEGA))
+            if i % 5 == 0:  # the autopilot's own estimate at 100 Hz, stamped +30 ms
+                v.send(mavlink.MAVLink_attitude_quaternion_message(
+                    (t_us + 30_000) // 1000, *q, 0, 0, 0, [1, 0, 0, 0]))
+            if i % 25 == 24:
+                await asyncio.sleep(0.05)
+        await wait_until(lambda: accepted(bridge) == 1500)
+        bridge.publish_status()
+        vehicle_cmp = bridge.last_status[1]["compare"]["vehicle"]["quaternion"]
+    assert vehicle_cmp["lag_s"] == pytest.approx(-0.030, abs=0.005)
+    assert vehicle_cmp["total_deg"] < 0.5
+    v.close()

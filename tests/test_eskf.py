@@ -80,7 +80,7 @@ def test_bias_is_learned_in_motion_from_the_correction_loop():
     correction rates drive the bias filter; tumbling makes all three axes observable.
     From 0.4 °/s per axis the residual after 120 s is below 0.1 °/s per axis (measured
     0.034), and the inclination error over the last minute is less than half of what it
-    is with the motion updates switched off (measured 0.39 against 1.46° RMS)."""
+    is with the motion updates (inclination and heading loops) switched off."""
     rate, seconds = 100.0, 120.0
     n = int(rate * seconds)
     t = np.arange(n) / rate
@@ -95,7 +95,8 @@ def test_bias_is_learned_in_motion_from_the_correction_loop():
     bias = np.array([0.4, -0.4, 0.4]) * DEG
     gyr = np.vstack([w[1:], w[-1:]]) + bias
     res = estimators.run("eskf", gyr, acc, mag, rate_hz=rate)
-    off = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, bias_sigma_motion=100.0)
+    off = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, bias_sigma_motion=100.0,
+                         bias_sigma_mag=100.0)
     residual = np.abs(res.bias[-1] - bias)
     assert np.all(residual < 0.1 * DEG), np.degrees(residual)
     assert np.all(np.abs(off.bias[-1] - bias) > 0.39 * DEG)  # really never at rest
@@ -103,6 +104,82 @@ def test_bias_is_learned_in_motion_from_the_correction_loop():
     rms_on = np.sqrt(np.mean(_errors_deg(res.q[last], truth[last])[1] ** 2))
     rms_off = np.sqrt(np.mean(_errors_deg(off.q[last], truth[last])[1] ** 2))
     assert rms_on < 0.5 * rms_off, (rms_on, rms_off)
+
+
+def _world_vertical_turn(seconds: float, rate: float):
+    """Tilted body turning at 20 °/s about the world vertical: the inclination loop sees
+    only the horizontal bias components, the bias along the (fixed) body-frame vertical
+    shows only in the heading. Returns truth, body rate, body-frame vertical unit vector."""
+    n = int(seconds * rate)
+    t = np.arange(n) / rate
+    yaw_rate = np.array([0.0, 0.0, 20.0 * DEG])
+    truth = Q.multiply(Q.from_rotvec(np.outer(t, yaw_rate)), TILT)
+    body_rate = Q.rotate(Q.conjugate(TILT), yaw_rate)
+    vertical = Q.rotate(Q.conjugate(TILT), np.array([0.0, 0.0, 1.0]))
+    return truth, body_rate, vertical
+
+
+def test_vertical_gyro_bias_is_learned_in_motion_from_the_magnetometer():
+    """Never at rest, 1 °/s bias along the world vertical: only the heading loop sees it.
+    Without the heading -> bias update the heading error settles at b·tau_mag ≈ 12°
+    (measured 11.9°); with it the bias is learned (residual measured 0.007 °/s after
+    60 s, bound 0.05) and the heading error of the last 10 s is below 1°."""
+    rate = 100.0
+    truth, body_rate, vertical = _world_vertical_turn(60.0, rate)
+    acc, mag = _sensors(truth)
+    bias = 1.0 * DEG * vertical
+    gyr = np.tile(body_rate + bias, (len(truth), 1))
+    res = estimators.run("eskf", gyr, acc, mag, rate_hz=rate)
+    off = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, bias_sigma_mag=100.0)
+    assert np.all(np.abs(res.bias[-1] - bias) < 0.05 * DEG), np.degrees(res.bias[-1] - bias)
+    last = slice(int(50 * rate), None)
+    assert _errors_deg(res.q[last], truth[last])[0].max() < 1.0
+    assert _errors_deg(off.q[last], truth[last])[0].max() > 10.0
+
+
+def test_vertical_bias_step_is_recovered():
+    """A 5 °/s bias step along the vertical at 30 s (an MPU6050 offset jump; bias_max is
+    20 °/s so it is not clipped). The heading loop answers a bias with its own lag
+    tau_mag = 12 s, so the bias measurement reaches 95 % of a step after 3·tau_mag:
+    by then the bias error is below 1 °/s (measured 0.51), and after 6·tau_mag the
+    heading error, which the loop removes with tau_mag, is below 5° (measured 3.6°).
+    Horizontal bias components are untouched (the update acts along the vertical)."""
+    rate, tau_mag = 100.0, 12.0
+    truth, body_rate, vertical = _world_vertical_turn(105.0, rate)
+    acc, mag = _sensors(truth)
+    step = int(30 * rate)
+    gyr = np.tile(body_rate + 1.0 * DEG * vertical, (len(truth), 1))
+    gyr[step:] += 5.0 * DEG * vertical
+    res = estimators.run("eskf", gyr, acc, mag, rate_hz=rate)
+    learned = res.bias[step + int(3 * tau_mag * rate)]
+    assert abs(learned @ vertical - 6.0 * DEG) < 1.0 * DEG, np.degrees(learned @ vertical)
+    assert np.linalg.norm(learned - (learned @ vertical) * vertical) < 0.01 * DEG
+    heading, _ = _errors_deg(res.q, truth)
+    assert heading[step + int(6 * tau_mag * rate)] < 5.0
+
+
+def test_bias_is_not_learned_from_a_disturbed_field():
+    """The vertical-bias turn with the field turned by 40° and scaled by 0.7 from 40 to
+    45 s: the disturbance is flagged and the vertical bias estimate moves by less than
+    0.01 °/s over it (measured 0.003), while the unguarded filter learns > 0.5 °/s of
+    false bias (measured 1.19)."""
+    rate = 100.0
+    truth, body_rate, vertical = _world_vertical_turn(60.0, rate)
+    n = len(truth)
+    start, stop = int(40 * rate), int(45 * rate)
+    acc, _ = _sensors(truth)
+    mag = Q.rotate(Q.conjugate(truth), _disturbed_field(n, start, stop, TILTED_AXIS, 40.0, 0.7))
+    gyr = np.tile(body_rate + 1.0 * DEG * vertical, (n, 1))
+    res = estimators.run("eskf", gyr, acc, mag, rate_hz=rate)
+    unguarded = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, mag_norm_th=1e9,
+                               mag_dip_th=1e9)
+    assert res.mag_rejected[start + int(0.1 * rate):stop].all()
+    during = slice(start, stop + int(2 * rate))
+    moved = np.abs(res.bias[during] @ vertical - res.bias[start] @ vertical).max()
+    moved_unguarded = np.abs(unguarded.bias[during] @ vertical
+                             - unguarded.bias[start] @ vertical).max()
+    assert moved < 0.01 * DEG, np.degrees(moved)
+    assert moved_unguarded > 0.5 * DEG
 
 
 # --- tilt and rotation -------------------------------------------------------------------
@@ -220,7 +297,8 @@ def test_magnetic_disturbance_is_rejected(axis, rotate_deg, scale):
     """Slow yaw rotation (10 °/s) with the field turned and/or scaled from 20 s to 25 s:
     flagged within 0.1 s of the onset until its end, heading error < 0.1° where the
     unguarded filter (thresholds off) is pulled by more than 1°, and the inclination is
-    the same as with a clean field (the magnetometer never tilts)."""
+    within 0.01° of that with a clean field (the magnetometer tilts only through the
+    vertical bias component)."""
     rate = 200.0
     n = int(30 * rate)
     t = np.arange(n) / rate
@@ -240,8 +318,13 @@ def test_magnetic_disturbance_is_rejected(axis, rotate_deg, scale):
     assert flagged[start + int(0.1 * rate):stop].all()
     assert _errors_deg(bad.q, truth)[0].max() < 0.1
     assert _errors_deg(unguarded.q, truth)[0].max() > 1.0
-    assert _tilt_between_deg(bad.q, clean.q).max() < 1e-9
-    assert _tilt_between_deg(unguarded.q, clean.q).max() < 1e-9
+    # The magnetometer reaches the inclination only through the bias it teaches (clean
+    # learns during 20-25 s, bad does not): measured at most 0.0072° here. A disturbed
+    # field that is not rejected teaches a wrong bias and does tilt (measured 0.43°):
+    # the rejection protects the inclination too.
+    tilt_bad = _tilt_between_deg(bad.q, clean.q).max()
+    assert tilt_bad < 0.01
+    assert _tilt_between_deg(unguarded.q, clean.q).max() > 10.0 * tilt_bad
 
 
 def test_magnetometer_cannot_change_the_inclination():

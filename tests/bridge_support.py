@@ -230,3 +230,10 @@ async def wait_until(condition, timeout: float = 5.0, period: float = 0.05) -> b
 def accepted(bridge, sysid: int = 1) -> int:
     """IMU samples the bridge accepted from a vehicle so far."""
     return sum(s.accepted for k, s in bridge.ingest.sources.items() if k.sysid == sysid)
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 that nothing is bound to right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

@@ -14,7 +14,15 @@ import tty
 from pathlib import Path
 
 import numpy as np
-from bridge_support import UdpListener, async_test, euler_q, raw_imu, running_bridge, wait_until
+from bridge_support import (
+    UdpListener,
+    async_test,
+    euler_q,
+    free_udp_port,
+    raw_imu,
+    running_bridge,
+    wait_until,
+)
 
 from bridge.mav import mavlink
 
@@ -108,12 +116,6 @@ async def test_serial_link_over_a_pseudo_terminal():
     assert len(aq) == 300  # every sample answered (out_rate 0), nothing lost on the tty
     last = np.array([aq[-1].q1, aq[-1].q2, aq[-1].q3, aq[-1].q4])
     assert abs(np.dot(last, q0)) > np.cos(np.radians(1.0) / 2)
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @async_test

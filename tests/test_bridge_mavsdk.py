@@ -4,20 +4,20 @@ from __future__ import annotations
 
 import asyncio
 import math
-import socket
 
 import numpy as np
-from bridge_support import MavSender, async_test, euler_q, running_bridge, send_rotating
+from bridge_support import (
+    MavSender,
+    async_test,
+    euler_q,
+    free_udp_port,
+    running_bridge,
+    send_rotating,
+)
 from mavsdk import ComponentType, Configuration, ConnectionResult, Mavsdk
 from mavsdk.plugins.telemetry import Telemetry
 
 from estimators import quat as Q
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @async_test

@@ -69,9 +69,9 @@ def offline_run(cfg: EmulatorConfig):
     """(recording, primary estimate) of the same samples without faults, offline."""
     rec = simulate(replace(cfg, faults=FaultConfig()))
     dt = np.diff(rec.time_us, prepend=rec.time_us[0] - round(1e6 / cfg.imu_rate_hz)) * 1e-6
-    q = estimators.batch(PRIMARY, rec.gyr, rec.acc, rec.mag, rate_hz=cfg.imu_rate_hz, dt=dt)
-    dec = math.radians(emulator_declination_deg())
-    return rec, Q.multiply(np.array([math.cos(dec / 2), 0.0, 0.0, math.sin(dec / 2)]), q)
+    q = estimators.batch(PRIMARY, rec.gyr, rec.acc, rec.mag, rate_hz=cfg.imu_rate_hz, dt=dt,
+                         declination=math.radians(emulator_declination_deg()))
+    return rec, q
 
 
 def offline_estimate(cfg: EmulatorConfig) -> dict[int, np.ndarray]:

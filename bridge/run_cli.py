@@ -111,6 +111,10 @@ async def serve(cfg: BridgeConfig) -> int:
     from .service import BridgeService
     from .table import LiveTable, summary
 
+    # numba compiles the filters on the very first run (a minute or two, then cached on
+    # disk): say so, or a newcomer stares at a silent terminal.
+    print("attitude-bridge: preparing estimators (compiled on first use, then cached)...",
+          file=sys.stderr, flush=True)
     emulator = None
     if not cfg.connect:
         emulator = builtin_emulator(cfg)

@@ -13,6 +13,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .fastframe import decode_single_imu_frame
 from .mav import MAVLink, MAVLinkMessage, mavlink
 
 #: MAVLink signing timestamps count 10 µs units since 2015-01-01 00:00 UTC.
@@ -126,6 +127,11 @@ class MavCodec:
         discarded rather than glued to the start of the next datagram.
         """
         self.stats.bytes_in += len(data)
+        if datagram and self.signing is None:
+            msg = decode_single_imu_frame(data)  # the common case, without the state machine
+            if msg is not None:
+                self.stats.messages_in += 1
+                return [msg]
         msgs = self._parse(data)
         if datagram and self._parser.buf_len() > 0:
             self.stats.truncated += 1

@@ -17,6 +17,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "estimators.cli",
     "hil.cli",
     "bridge.run_cli",
+    "bridge.calibrate_cli",
     "replay.cli",
 )
 

@@ -16,6 +16,7 @@ import estimators
 from estimators.spec import EstimatorSpec
 
 from .boards import PROFILES
+from .calibration import SensorCalibration
 from .ingest import IMU_MESSAGE_NAMES
 from .mav import BRIDGE_COMPONENT_ID
 from .rotations import rotation_matrix
@@ -50,6 +51,9 @@ class BridgeConfig:
     mqtt_prefix: str = "attitude"
     board: str = "gy86"
     rotation: str = "NONE"
+    # Sensor calibration TOML (``attitude-bridge calibrate`` writes one), applied to every
+    # IMU sample after board scaling and rotation. None: uncalibrated.
+    calibration: str | None = None
     # Magnetic declination [deg, east positive]: estimators find magnetic north, MAVLink
     # and the truth use true north. None: 0, or the emulator's when it is the source.
     declination_deg: float | None = None
@@ -92,6 +96,7 @@ class BridgeConfig:
         if self.board not in PROFILES:
             raise ValueError(f"unknown board {self.board!r}; valid: {sorted(PROFILES)}")
         rotation_matrix(self.rotation)
+        self.sensor_calibration()
         if self.imu_message not in IMU_MESSAGE_NAMES:
             raise ValueError(f"unknown IMU message {self.imu_message!r}; "
                              f"valid: {sorted(IMU_MESSAGE_NAMES)}")
@@ -104,9 +109,19 @@ class BridgeConfig:
         if self.imu_rate <= 0:
             raise ValueError("imu_rate must be positive")
 
+    def sensor_calibration(self) -> SensorCalibration | None:
+        """The calibration file's contents (ValueError naming the file if it is bad)."""
+        return SensorCalibration.load(self.calibration) if self.calibration else None
+
     @classmethod
     def from_toml(cls, path: str | Path) -> BridgeConfig:
-        return cls.from_dict(tomllib.loads(Path(path).read_text()))
+        """Settings from a TOML file; a relative ``calibration`` path is taken relative
+        to the settings file (they usually live side by side)."""
+        data = tomllib.loads(Path(path).read_text())
+        cal = data.get("calibration")
+        if isinstance(cal, str) and not Path(cal).is_absolute():
+            data["calibration"] = str(Path(path).parent / cal)
+        return cls.from_dict(data)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> BridgeConfig:

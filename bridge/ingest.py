@@ -2,7 +2,8 @@
 
 Reads RAW_IMU (through a board profile that states what its integers mean),
 SCALED_IMU / SCALED_IMU2 / SCALED_IMU3 (mG, mrad/s, mgauss, FRD) and HIGHRES_IMU
-(m/s^2, rad/s, gauss, FRD), applies the board mounting rotation, and stamps each
+(m/s^2, rad/s, gauss, FRD), applies the board mounting rotation and the sensor
+calibration (:mod:`bridge.calibration`, folded into one matrix), and stamps each
 sample with the message's own time. Every source — (sysid, compid, IMU id) — has its
 own clock and counters, so several vehicles or IMUs can share one link.
 
@@ -32,6 +33,7 @@ import numpy as np
 
 from . import clock as C
 from .boards import BoardProfile
+from .calibration import SensorCalibration
 from .mav import MAVLinkMessage, mavlink
 
 MG = 9.80665e-3  # m/s^2 per milli-g
@@ -50,6 +52,12 @@ IMU_MESSAGE_NAMES = {"RAW_IMU": ID_RAW_IMU, "SCALED_IMU": ID_SCALED_IMU,
                      "SCALED_IMU2": ID_SCALED_IMU2, "SCALED_IMU3": ID_SCALED_IMU3,
                      "HIGHRES_IMU": ID_HIGHRES_IMU}
 _SCALED_IMU_INDEX = {ID_SCALED_IMU: 0, ID_SCALED_IMU2: 1, ID_SCALED_IMU3: 2}
+_ONE = (1.0,)  # appended to a message's numbers for the affine (calibrated) maps
+
+
+def _affine(matrix: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """3x4 [matrix | offset]: ``v -> matrix @ v + offset`` as one multiply on (v, 1)."""
+    return np.column_stack([matrix, offset])
 
 
 class SourceKey(NamedTuple):
@@ -104,25 +112,36 @@ class Ingest:
     """Turns IMU messages into :class:`ImuSample`; keeps per-source state."""
 
     def __init__(self, profile: BoardProfile, rotation: np.ndarray | None = None,
-                 jump_s: float = 0.1, reorder_s: float = 0.5) -> None:
+                 jump_s: float = 0.1, reorder_s: float = 0.5,
+                 calibration: SensorCalibration | None = None) -> None:
         rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
+        cal = SensorCalibration() if calibration is None else calibration
         self.profile = profile
         self.rotation = rot
+        self.calibration = cal
         self.jump_s = jump_s
         self.reorder_s = reorder_s
-        # Combined "message integers -> FRD SI" matrices, one multiply per vector.
+        # Every "message numbers -> calibrated FRD SI" map is affine: one matrix per
+        # message type acting on the numbers with a 1 appended, which folds scale,
+        # axes, mounting rotation, calibration matrix and offset into a single multiply
+        # (the calibration costs nothing per sample). Saturation and overflow are still
+        # judged on the message's own numbers.
+        gyr_m, gyr_c = cal.affine("gyro")
+        acc_m, acc_c = cal.affine("accel")
+        mag_m, mag_c = cal.affine("mag")
         raw_axes = rot @ profile.to_frd
-        self._raw_gyr = raw_axes * profile.gyro_scale
-        self._raw_acc = raw_axes * profile.accel_scale
-        self._raw_mag = raw_axes * profile.mag_scale
-        # All nine RAW_IMU integers in one multiply (one numpy call per sample, not three).
-        self._raw_all = np.zeros((9, 9))
-        self._raw_all[0:3, 0:3] = self._raw_gyr
-        self._raw_all[3:6, 3:6] = self._raw_acc
-        self._raw_all[6:9, 6:9] = self._raw_mag
-        self._scaled_gyr = rot * 1e-3
-        self._scaled_acc = rot * MG
-        self._scaled_mag = rot * 1e-3
+        # All nine RAW_IMU integers (+1) in one multiply (one numpy call per sample).
+        self._raw_all = np.zeros((9, 10))
+        self._raw_all[0:3, 0:3] = gyr_m @ raw_axes * profile.gyro_scale
+        self._raw_all[3:6, 3:6] = acc_m @ raw_axes * profile.accel_scale
+        self._raw_all[6:9, 6:9] = mag_m @ raw_axes * profile.mag_scale
+        self._raw_all[:, 9] = np.concatenate([gyr_c, acc_c, mag_c])
+        self._scaled_gyr = _affine(gyr_m @ rot * 1e-3, gyr_c)
+        self._scaled_acc = _affine(acc_m @ rot * MG, acc_c)
+        self._scaled_mag = _affine(mag_m @ rot * 1e-3, mag_c)
+        self._highres_gyr = _affine(gyr_m @ rot, gyr_c)
+        self._highres_acc = _affine(acc_m @ rot, acc_c)
+        self._highres_mag = _affine(mag_m @ rot, mag_c)
         self.sources: dict[SourceKey, SourceState] = {}
 
     def _source(self, key: SourceKey, tick_s: float, wrap: int) -> SourceState:
@@ -157,7 +176,7 @@ class Ingest:
         # A clipped gyro axis is known to be wrong (rate beyond range, or a knock); for
         # a short event the last unclipped rate is the better guess.
         raw = g + a
-        si = self._raw_all @ np.array(raw + mg, dtype=float)
+        si = self._raw_all @ np.array(raw + mg + _ONE, dtype=float)
         gyr = src.last_good_gyr if gyro_clipped and src.last_good_gyr is not None else si[0:3]
         acc = np.full(3, np.nan) if acc_clipped else si[3:6]
         mag = None if mg == (0, 0, 0) or mag_overflow else si[6:9]
@@ -183,10 +202,10 @@ class Ingest:
                     arrival: float | None) -> ImuSample | None:
         key = SourceKey(m.get_srcSystem(), m.get_srcComponent(), index)
         src = self._source(key, 1e-3, C.WRAP_32)
-        gyr = self._scaled_gyr @ (m.xgyro, m.ygyro, m.zgyro)
-        acc = self._scaled_acc @ (m.xacc, m.yacc, m.zacc)
+        gyr = self._scaled_gyr @ (m.xgyro, m.ygyro, m.zgyro, 1.0)
+        acc = self._scaled_acc @ (m.xacc, m.yacc, m.zacc, 1.0)
         mg = (m.xmag, m.ymag, m.zmag)
-        mag = None if mg == (0, 0, 0) else self._scaled_mag @ mg
+        mag = None if mg == (0, 0, 0) else self._scaled_mag @ (mg + _ONE)
         return self._stamp(src, key, m.time_boot_ms, 1e-3, gyr, acc, mag, arrival,
                            (m.xgyro, m.ygyro, m.zgyro, m.xacc, m.yacc, m.zacc))
 
@@ -199,7 +218,7 @@ class Ingest:
             return None
         a = (m.xacc, m.yacc, m.zacc)
         if all(map(math.isfinite, a)):
-            acc = self.rotation @ a
+            acc = self._highres_acc @ (a + _ONE)
         else:
             src.counts["acc_invalid"] += 1
             acc = np.full(3, np.nan)
@@ -207,11 +226,12 @@ class Ingest:
         if mg == (0.0, 0.0, 0.0):
             mag = None
         elif all(map(math.isfinite, mg)):
-            mag = self.rotation @ mg
+            mag = self._highres_mag @ (mg + _ONE)
         else:
             src.counts["mag_invalid"] += 1
             mag = None
-        return self._stamp(src, key, m.time_usec, 1e-6, self.rotation @ g, acc, mag, arrival,
+        return self._stamp(src, key, m.time_usec, 1e-6, self._highres_gyr @ (g + _ONE), acc,
+                           mag, arrival,
                            g + a)
 
     def _stamp(self, src: SourceState, key: SourceKey, raw_time: int, tick_s: float,

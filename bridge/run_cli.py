@@ -39,6 +39,9 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help="what RAW_IMU integers mean (default gy86)")
     p.add_argument("--rotation", metavar="NAME",
                    help="board mounting rotation, PX4/ArduPilot name, e.g. YAW_90")
+    p.add_argument("--calibration", metavar="FILE.toml",
+                   help="sensor calibration to apply to every IMU sample (written by "
+                        "`attitude-bridge calibrate`)")
     p.add_argument("--declination", dest="declination_deg", type=float, metavar="DEG",
                    help="magnetic declination, east positive: report true north (default 0; "
                         "the built-in emulator's own when it is the source)")
@@ -89,7 +92,8 @@ def config_from_args(args: argparse.Namespace, demo: bool) -> BridgeConfig:
     base = BridgeConfig.from_toml(args.config) if args.config else BridgeConfig()
     overrides = {k: getattr(args, k) for k in (
         "connect", "estimators", "outs", "mqtt", "mqtt_username", "mqtt_password", "mqtt_tls",
-        "mqtt_ca", "mqtt_cert", "mqtt_key", "mqtt_rate", "board", "rotation", "declination_deg",
+        "mqtt_ca", "mqtt_cert", "mqtt_key", "mqtt_rate", "board", "rotation", "calibration",
+        "declination_deg",
         "imu_message",
         "imu_rate", "out_rate", "component_id", "signing_key", "allow_unsigned", "duration",
         "table", "emulator_profile", "emulator_seed", "emulator_fast")}

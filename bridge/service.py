@@ -83,7 +83,7 @@ class BridgeService:
         self.outs: list[Link] = [open_link(u, self._on_out_message, self.signing)
                                  for u in cfg.outs]
         self.ingest = Ingest(board_profile(cfg.board), rotation_matrix(cfg.rotation),
-                             cfg.jump_s, cfg.reorder_s)
+                             cfg.jump_s, cfg.reorder_s, cfg.sensor_calibration())
         self.pipeline = Pipeline(cfg.estimator_specs, cfg.imu_rate, cfg.window_s + 2.0,
                                  cfg.declination_deg or 0.0)
         self.output = AttitudeOutput([self.link, *self.outs], cfg.component_id, cfg.out_rate)

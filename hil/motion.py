@@ -21,6 +21,7 @@ replayed motion); after the last row it holds still. Position stays fixed.
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +32,7 @@ from estimators import quat
 
 from .environment import GRAVITY_NED
 
-PROFILE_NAMES = ("static", "tilt", "flight", "aggressive")
+PROFILE_NAMES = ("static", "tilt", "flight", "aggressive", "calibration")
 TILT_ROLL_DEG = 15.9  # the seed paper's static test
 TILT_PITCH_DEG = 9.2
 
@@ -266,6 +267,41 @@ def aggressive(duration_s: float) -> Profile:
     return EulerProfile("aggressive", roll, pitch, yaw, down=down)
 
 
+#: (roll, pitch, yaw) [deg] of the `calibration` profile's static poses: gravity along
+#: ±x, ±y, ±z and eight diagonals, each at another heading, so the accelerometer sees
+#: 14 directions and the magnetometer the whole sphere.
+CALIBRATION_POSES_DEG = (
+    (0, 0, 0), (0, 0, 120), (180, 0, 60), (90, 0, 200), (-90, 0, 300), (0, 90, 30),
+    (0, -90, 150), (45, 45, 250), (-45, 45, 340), (45, -45, 80), (-45, -45, 190),
+    (135, 30, 280), (-135, 30, 20), (135, -30, 110), (-135, -30, 230),
+)
+CALIBRATION_HOLD_S = 2.0
+CALIBRATION_MOVE_S = 1.5
+
+
+def calibration() -> Profile:
+    """A board turned by hand through 15 orientations and held still in each.
+
+    The still stretches give the gyro offset and the accelerometer's static poses; the
+    turns in between (and the varied headings) spread the magnetometer over the sphere.
+    The first pose (level, north) is held first; the last one is held for ever.
+    """
+    channels = [Channel(_deg(v)) for v in CALIBRATION_POSES_DEG[0]]
+    t = CALIBRATION_HOLD_S
+    for prev, pose in itertools.pairwise(CALIBRATION_POSES_DEG):
+        for ch, a, b in zip(channels, prev, pose, strict=True):
+            if a != b:
+                ch.ramp(t, CALIBRATION_MOVE_S, _deg(b - a))
+        t += CALIBRATION_MOVE_S + CALIBRATION_HOLD_S
+    return EulerProfile("calibration", *channels)
+
+
+def calibration_duration_s() -> float:
+    """Time to go through every pose of the `calibration` profile."""
+    n = len(CALIBRATION_POSES_DEG)
+    return n * CALIBRATION_HOLD_S + (n - 1) * CALIBRATION_MOVE_S
+
+
 class FileProfile(Profile):
     """Replay of a recorded attitude (see the module docstring for the CSV format)."""
 
@@ -323,11 +359,13 @@ def load_attitude_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def make_profile(name: str, duration_s: float = 60.0) -> Profile:
-    """A profile by name (``static``, ``tilt``, ``flight``, ``aggressive``, ``file:PATH``)."""
+    """A profile by name (``static``, ``tilt``, ``flight``, ``aggressive``, ``calibration``,
+    ``file:PATH``)."""
     if name.startswith("file:"):
         return FileProfile(name[len("file:"):])
     builders = {"static": lambda: static(), "tilt": lambda: tilt(),
-                "flight": lambda: flight(duration_s), "aggressive": lambda: aggressive(duration_s)}
+                "flight": lambda: flight(duration_s), "aggressive": lambda: aggressive(duration_s),
+                "calibration": calibration}
     if name not in builders:
         raise ValueError(f"unknown profile {name!r}; valid: {', '.join(PROFILE_NAMES)}, file:PATH")
     return builders[name]()

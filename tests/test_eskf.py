@@ -139,23 +139,27 @@ def test_vertical_gyro_bias_is_learned_in_motion_from_the_magnetometer():
 
 def test_vertical_bias_step_is_recovered():
     """A 5 °/s bias step along the vertical at 30 s (an MPU6050 offset jump; bias_max is
-    20 °/s so it is not clipped). The heading loop answers a bias with its own lag
-    tau_mag = 12 s, so the bias measurement reaches 95 % of a step after 3·tau_mag:
-    by then the bias error is below 1 °/s (measured 0.51), and after 6·tau_mag the
-    heading error, which the loop removes with tau_mag, is below 5° (measured 3.6°).
-    Horizontal bias components are untouched (the update acts along the vertical)."""
-    rate, tau_mag = 100.0, 12.0
-    truth, body_rate, vertical = _world_vertical_turn(105.0, rate)
+    20 °/s so it is not clipped). Detected after ~4 s, then followed (raised bias random
+    walk, faster loops): the bias is within 1 °/s after 10 s (measured 0.32 °/s) and the
+    heading error under 2° from 15 s on (measured 0.88°; peak 19.4°). Without step
+    following (hold ~0) the heading error is still ~29° at 15 s (the heading loop alone
+    answers with tau_mag = 12 s). Horizontal bias components move < 0.2 °/s (measured
+    0.11: following raises the random walk on every axis)."""
+    rate = 100.0
+    truth, body_rate, vertical = _world_vertical_turn(60.0, rate)
     acc, mag = _sensors(truth)
     step = int(30 * rate)
     gyr = np.tile(body_rate + 1.0 * DEG * vertical, (len(truth), 1))
     gyr[step:] += 5.0 * DEG * vertical
     res = estimators.run("eskf", gyr, acc, mag, rate_hz=rate)
-    learned = res.bias[step + int(3 * tau_mag * rate)]
+    slow = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, bias_step_hold=1e-9)
+    learned = res.bias[step + int(10 * rate)]
     assert abs(learned @ vertical - 6.0 * DEG) < 1.0 * DEG, np.degrees(learned @ vertical)
-    assert np.linalg.norm(learned - (learned @ vertical) * vertical) < 0.01 * DEG
+    horizontal = res.bias - (res.bias @ vertical)[:, None] * vertical
+    assert np.linalg.norm(horizontal[step:], axis=1).max() < 0.2 * DEG
     heading, _ = _errors_deg(res.q, truth)
-    assert heading[step + int(6 * tau_mag * rate)] < 5.0
+    assert heading[step + int(15 * rate):].max() < 2.0
+    assert _errors_deg(slow.q, truth)[0][step + int(15 * rate)] > 10.0
 
 
 def test_bias_is_not_learned_from_a_disturbed_field():
@@ -329,13 +333,15 @@ def test_magnetic_disturbance_is_rejected(axis, rotate_deg, scale):
 
 def test_magnetometer_cannot_change_the_inclination():
     """Same state, wildly different magnetometer samples: the output inclinations are
-    equal to rounding, the headings differ."""
+    equal to rounding, the headings differ. (Disturbance rejection off: it would rightly
+    refuse the wild sample, and then nothing at all would change.)"""
     rate = 200.0
     truth = _static(TILT, 3.0, rate)
     acc, mag = _sensors(truth)
-    a = estimators.create("eskf", rate_hz=rate)
+    unguarded = {"mag_norm_th": 1e9, "mag_dip_th": 1e9}
+    a = estimators.create("eskf", rate_hz=rate, **unguarded)
     a.run(np.zeros_like(acc), acc, mag)
-    b = estimators.create("eskf", rate_hz=rate)
+    b = estimators.create("eskf", rate_hz=rate, **unguarded)
     b.run(np.zeros_like(acc), acc, mag)
     qa = a.update(np.zeros(3), acc[0], mag[0])
     qb = b.update(np.zeros(3), acc[0], -3.0 * mag[0] + np.array([1.0, 0.0, 0.0]))

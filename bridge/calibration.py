@@ -1,0 +1,197 @@
+"""Sensor calibration: offsets and correction matrices for gyro, accelerometer, compass.
+
+A cheap MEMS board (the GY-86's MPU6050 and HMC5883L) reads with zero-g offsets of tens
+of mg, percent-level scale and cross-axis errors, and a magnetometer distorted by the
+board's own iron. Uncorrected, these tilt and turn the estimated attitude by degrees.
+A :class:`SensorCalibration` removes them with, per sensor,
+
+    corrected = M @ (measured - offset)
+
+applied to the SI vectors ingest produces — body FRD, after the board profile's scaling
+and the mounting rotation — so one calibration file serves every IMU message type.
+The default is the identity (zero offsets, unit matrices).
+
+Files are small TOML documents (see :meth:`SensorCalibration.to_toml`); anything wrong
+in them is a ValueError naming the key and the problem.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+#: (TOML table, offset key, matrix key, dataclass offset field, dataclass matrix field)
+_SECTIONS = (
+    ("gyro", "offset", None, "gyro_offset", None),
+    ("accel", "offset", "matrix", "accel_offset", "accel_matrix"),
+    ("mag", "offset", "matrix", "mag_offset", "mag_matrix"),
+)
+#: Smallest allowed |det| relative to the product of row norms: below it the matrix
+#: squashes a direction to (almost) nothing, which no real correction does.
+MIN_RELATIVE_DET = 1e-6
+#: A correction matrix further than this from a multiple of the identity (per entry,
+#: relative to its scale) is rejected: real sensor errors are a few percent, so a
+#: larger one means a wrong fit or a wrong file, and it would rotate the attitude.
+MAX_RELATIVE_DISTORTION = 0.5
+
+
+def _zeros() -> np.ndarray:
+    return np.zeros(3)
+
+
+def _eye() -> np.ndarray:
+    return np.eye(3)
+
+
+def _vector(value: object, name: str) -> np.ndarray:
+    try:
+        v = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be 3 numbers, got {value!r}") from None
+    if v.shape != (3,):
+        raise ValueError(f"{name} must be 3 numbers, got shape {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{name} must be finite, got {v.tolist()}")
+    return v
+
+
+def _matrix(value: object, name: str) -> np.ndarray:
+    try:
+        m = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a 3x3 array of numbers, got {value!r}") from None
+    if m.shape != (3, 3):
+        raise ValueError(f"{name} must be 3x3 (three rows of three numbers), got shape "
+                         f"{m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise ValueError(f"{name} must be finite, got {m.tolist()}")
+    rows = np.prod(np.linalg.norm(m, axis=1))
+    if rows == 0.0 or abs(np.linalg.det(m)) < MIN_RELATIVE_DET * rows:
+        raise ValueError(f"{name} is singular (it would flatten the measured vector): "
+                         f"{m.tolist()}")
+    scale = abs(np.linalg.det(m)) ** (1.0 / 3.0)
+    distortion = np.max(np.abs(m / scale - np.eye(3) * np.sign(np.linalg.det(m))))
+    if np.linalg.det(m) < 0.0 or distortion > MAX_RELATIVE_DISTORTION:
+        raise ValueError(f"{name} is not a plausible correction (a few percent from a "
+                         f"multiple of the identity, no axis flip): {m.tolist()}")
+    return m
+
+
+@dataclass(frozen=True, eq=False)  # eq on arrays is ambiguous; compare fields explicitly
+class SensorCalibration:
+    """Offsets and correction matrices, applied as ``M @ (raw - offset)`` (body FRD, SI).
+
+    ``gyro_offset`` [rad/s]; ``accel_offset`` [m/s^2] and ``accel_matrix``;
+    ``mag_offset`` (hard iron, in the unit of the magnetometer vectors: gauss for every
+    built-in board profile) and ``mag_matrix`` (soft iron). Only the magnetometer's
+    direction matters to the estimators, so its matrix's overall scale is free.
+    """
+
+    gyro_offset: np.ndarray = field(default_factory=_zeros)
+    accel_offset: np.ndarray = field(default_factory=_zeros)
+    accel_matrix: np.ndarray = field(default_factory=_eye)
+    mag_offset: np.ndarray = field(default_factory=_zeros)
+    mag_matrix: np.ndarray = field(default_factory=_eye)
+
+    def __post_init__(self) -> None:
+        for _, _, _, off, mat in _SECTIONS:
+            object.__setattr__(self, off, _vector(getattr(self, off), off))
+            if mat is not None:
+                object.__setattr__(self, mat, _matrix(getattr(self, mat), mat))
+        for name in ("gyro_offset", "accel_offset", "accel_matrix", "mag_offset",
+                     "mag_matrix"):
+            getattr(self, name).setflags(write=False)
+
+    @property
+    def is_identity(self) -> bool:
+        return (not self.gyro_offset.any() and not self.accel_offset.any()
+                and not self.mag_offset.any() and np.array_equal(self.accel_matrix, np.eye(3))
+                and np.array_equal(self.mag_matrix, np.eye(3)))
+
+    # --- applying ------------------------------------------------------------------
+    def gyro(self, v: np.ndarray) -> np.ndarray:
+        """Corrected rates for (..., 3) vectors."""
+        return np.asarray(v, dtype=float) - self.gyro_offset
+
+    def accel(self, v: np.ndarray) -> np.ndarray:
+        return (np.asarray(v, dtype=float) - self.accel_offset) @ self.accel_matrix.T
+
+    def mag(self, v: np.ndarray) -> np.ndarray:
+        return (np.asarray(v, dtype=float) - self.mag_offset) @ self.mag_matrix.T
+
+    def affine(self, sensor: str) -> tuple[np.ndarray, np.ndarray]:
+        """(M, c) with ``corrected = M @ raw + c`` — for folding into other matrices."""
+        if sensor == "gyro":
+            return np.eye(3), -self.gyro_offset
+        if sensor == "accel":
+            return self.accel_matrix, -self.accel_matrix @ self.accel_offset
+        if sensor == "mag":
+            return self.mag_matrix, -self.mag_matrix @ self.mag_offset
+        raise ValueError(f"unknown sensor {sensor!r}; valid: gyro, accel, mag")
+
+    # --- files ---------------------------------------------------------------------
+    @classmethod
+    def from_dict(cls, data: dict) -> SensorCalibration:
+        """From the TOML tables ``[gyro]``, ``[accel]``, ``[mag]`` (each optional)."""
+        known = {s[0] for s in _SECTIONS} | {"meta"}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown calibration table(s) {unknown}; valid: "
+                             f"{sorted(known)}")
+        values: dict[str, np.ndarray] = {}
+        for table, off_key, mat_key, off, mat in _SECTIONS:
+            section = data.get(table, {})
+            if not isinstance(section, dict):
+                raise ValueError(f"[{table}] must be a table")
+            allowed = {off_key} | ({mat_key} if mat_key else set())
+            extra = sorted(set(section) - allowed)
+            if extra:
+                raise ValueError(f"unknown key(s) {extra} in [{table}]; valid: "
+                                 f"{sorted(allowed)}")
+            if off_key in section:
+                values[off] = _vector(section[off_key], f"{table}.{off_key}")
+            if mat_key and mat_key in section:
+                values[mat] = _matrix(section[mat_key], f"{table}.{mat_key}")
+        return cls(**values)
+
+    @classmethod
+    def load(cls, path: str | Path) -> SensorCalibration:
+        """Read a calibration TOML file; ValueError (with the file name) if it is bad."""
+        p = Path(path)
+        try:
+            text = p.read_text()
+        except OSError as exc:
+            raise ValueError(f"cannot read calibration file {p}: {exc}") from exc
+        try:
+            return cls.from_dict(tomllib.loads(text))
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"{p}: not valid TOML ({exc})") from exc
+        except ValueError as exc:
+            raise ValueError(f"{p}: {exc}") from exc
+
+    def to_toml(self, comment: str = "") -> str:
+        """The file text: ``[gyro] offset``, ``[accel]/[mag] offset`` and ``matrix``."""
+
+        def num(x: float) -> str:
+            return repr(float(x)) if math.isfinite(x) else "nan"
+
+        def vec(v: np.ndarray) -> str:
+            return "[" + ", ".join(num(x) for x in v) + "]"
+
+        lines = [f"# {line}" for line in comment.splitlines()]
+        lines.append("# attitude-bridge sensor calibration: corrected = matrix @ (raw - offset),")
+        lines.append("# body FRD, SI (rad/s, m/s^2; magnetometer in gauss), after board scaling "
+                     "and rotation.")
+        for table, off_key, mat_key, off, mat in _SECTIONS:
+            lines += ["", f"[{table}]", f"{off_key} = {vec(getattr(self, off))}"]
+            if mat_key:
+                rows = ",\n    ".join(vec(r) for r in getattr(self, mat))
+                lines.append(f"{mat_key} = [\n    {rows},\n]")
+        return "\n".join(lines) + "\n"
+
+    def save(self, path: str | Path, comment: str = "") -> None:
+        Path(path).write_text(self.to_toml(comment))

@@ -1,0 +1,338 @@
+"""Fitting a :class:`~bridge.calibration.SensorCalibration` from recorded samples.
+
+Three independent fits, numpy least squares only:
+
+* **gyro offset** — the mean rate over the longest stretch where the board is still;
+* **accelerometer** — at rest the accelerometer reads gravity, so the static poses'
+  mean readings lie on an ellipsoid; find offset b and symmetric M with
+  ``|M (a - b)| = G`` for every pose (Gauss-Newton on the norm residuals). Norms only
+  see the symmetric part of the sensor's error matrix; the small rotation left over is
+  a misalignment of a few tenths of a degree for percent-level cross-axis errors;
+* **magnetometer** — the Earth's field has one strength, so the readings of a board
+  turned through all orientations lie on an ellipsoid (hard iron = its centre, soft
+  iron = its shape): an algebraic quadric fit, then ``M = r · A^(1/2)`` with r the mean
+  field strength, so corrected vectors keep the usual magnitude.
+
+Each fit refuses (ValueError saying why) data that cannot determine it — too few
+static poses, poses or field directions covering too little of the sphere — because a
+calibration fitted to such data is confidently wrong, which is worse than none.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .calibration import SensorCalibration
+
+G = 9.80665
+
+# --- still detection --------------------------------------------------------------
+BLOCK_S = 0.1  # samples are judged in blocks of this length
+GYRO_STD_STILL = 0.02  # rad/s: per-axis std within a block; a hand-held board shakes more
+ACCEL_STD_STILL = 0.25  # m/s^2: per-axis std within a block (noise is ~0.07)
+ACCEL_STEP_STILL = 0.05  # m/s^2: largest change of the block mean between neighbours
+GYRO_STEP_STILL = 0.005  # rad/s: same for the gyro (a slow steady turn is not still)
+MIN_POSE_S = 0.5  # a static pose lasts at least this long
+POSE_SEPARATION_DEG = 20.0  # two poses closer than this count as one orientation
+MIN_POSES = 6  # offset + diagonal scale: 6 unknowns
+MIN_POSES_FULL = 12  # offset + symmetric matrix: 9 unknowns, with some redundancy
+MAX_JACOBIAN_CONDITION = 1e4  # beyond: the poses do not pin the parameters down
+
+# --- magnetometer coverage ---------------------------------------------------------
+MIN_MAG_SAMPLES = 50
+#: Smallest eigenvalue of the mean outer product of the field's unit directions (from
+#: the fitted centre): 1/3 for the whole sphere, 0 for a flat circle (yaw-only turns).
+MIN_MAG_SPREAD = 0.08
+#: Of the 26 cube directions (faces, edges, corners), how many must have a sample
+#: within 45°: catches a cap on one side that the eigenvalue test would pass.
+MIN_MAG_DIRECTIONS = 18
+MAX_QUADRIC_CONDITION = 1e8
+
+
+@dataclass(frozen=True)
+class FitReport:
+    """What a fit saw and achieved, for the user to judge the calibration."""
+
+    gyro_still_s: float = 0.0
+    accel_poses: int = 0
+    accel_model: str = ""  # "symmetric" or "diagonal"
+    accel_norm_std_before: float = float("nan")  # std of |a| over poses [m/s^2]
+    accel_norm_std_after: float = float("nan")
+    accel_norm_rms_error_before: float = float("nan")  # RMS of |a| - G [m/s^2]
+    accel_norm_rms_error_after: float = float("nan")
+    mag_samples: int = 0
+    mag_spread: float = 0.0
+    mag_norm_rel_std_before: float = float("nan")  # std(|m|) / mean(|m|)
+    mag_norm_rel_std_after: float = float("nan")
+
+    def lines(self) -> list[str]:
+        out = []
+        if self.gyro_still_s:
+            out.append(f"gyro:  offset from {self.gyro_still_s:.1f} s still")
+        if self.accel_poses:
+            out.append(f"accel: {self.accel_poses} static poses, {self.accel_model} model; "
+                       f"gravity norm std {self.accel_norm_std_before:.4f} -> "
+                       f"{self.accel_norm_std_after:.4f} m/s^2, RMS |a|-G "
+                       f"{self.accel_norm_rms_error_before:.4f} -> "
+                       f"{self.accel_norm_rms_error_after:.4f} m/s^2")
+        if self.mag_samples:
+            out.append(f"mag:   {self.mag_samples} readings, direction spread "
+                       f"{self.mag_spread:.2f} (sphere 0.33); field norm relative std "
+                       f"{self.mag_norm_rel_std_before:.4f} -> "
+                       f"{self.mag_norm_rel_std_after:.4f}")
+        return out
+
+
+# --- still stretches and poses ----------------------------------------------------
+
+def _blocks(x: np.ndarray, n: int) -> np.ndarray:
+    m = len(x) // n
+    return x[: m * n].reshape(m, n, 3)
+
+
+def still_blocks(gyr: np.ndarray, acc: np.ndarray, rate_hz: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """(still flag, mean gyro, mean accel) per block, and the block length in samples.
+
+    A block is still when gyro and accelerometer barely vary within it and their means
+    match both neighbours' (a slow steady rotation has a quiet gyro but a moving
+    gravity direction).
+    """
+    n = max(2, round(BLOCK_S * rate_hz))
+    g, a = _blocks(np.asarray(gyr, float), n), _blocks(np.asarray(acc, float), n)
+    if len(g) < 3:
+        return np.zeros(len(g), bool), g.mean(axis=1), a.mean(axis=1), n
+    finite = np.all(np.isfinite(g), axis=(1, 2)) & np.all(np.isfinite(a), axis=(1, 2))
+    with np.errstate(invalid="ignore"):
+        g_mean, a_mean = g.mean(axis=1), a.mean(axis=1)
+        quiet = ((g.std(axis=1).max(axis=1) < GYRO_STD_STILL)
+                 & (a.std(axis=1).max(axis=1) < ACCEL_STD_STILL))
+        a_step = np.abs(np.diff(a_mean, axis=0)).max(axis=1) < ACCEL_STEP_STILL
+        g_step = np.abs(np.diff(g_mean, axis=0)).max(axis=1) < GYRO_STEP_STILL
+    steady = a_step & g_step
+    neighbours = np.zeros(len(g), bool)
+    neighbours[1:-1] = steady[:-1] & steady[1:]
+    return finite & quiet & neighbours, g_mean, a_mean, n
+
+
+def _runs(flag: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) of each run of True."""
+    edges = np.diff(np.concatenate(([0], flag.astype(np.int8), [0])))
+    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
+
+
+def static_poses(gyr: np.ndarray, acc: np.ndarray, rate_hz: float
+                 ) -> tuple[np.ndarray, list[tuple[int, int]], int]:
+    """(mean accelerometer per static pose (P, 3), block runs, block length)."""
+    still, _, a_mean, n = still_blocks(gyr, acc, rate_hz)
+    min_blocks = max(1, round(MIN_POSE_S / BLOCK_S))
+    runs = [(s, e) for s, e in _runs(still) if e - s >= min_blocks]
+    poses = np.array([a_mean[s:e].mean(axis=0) for s, e in runs]).reshape(-1, 3)
+    return poses, runs, n
+
+
+def distinct_directions(vectors: np.ndarray, separation_deg: float) -> int:
+    """How many of the vectors point more than ``separation_deg`` from all earlier kept ones."""
+    units = vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+    kept: list[np.ndarray] = []
+    cos_sep = np.cos(np.radians(separation_deg))
+    for u in units:
+        if all(float(u @ k) < cos_sep for k in kept):
+            kept.append(u)
+    return len(kept)
+
+
+# --- gyro ---------------------------------------------------------------------------
+
+def fit_gyro_offset(gyr: np.ndarray, acc: np.ndarray, rate_hz: float,
+                    min_still_s: float = 1.0) -> tuple[np.ndarray, float]:
+    """(offset [rad/s], seconds of stillness used): the mean rate over the longest
+    still stretch, where the true rate is zero."""
+    still, g_mean, _, n = still_blocks(gyr, acc, rate_hz)
+    runs = _runs(still)
+    if not runs:
+        raise ValueError("gyro offset: no still stretch found (keep the board motionless "
+                         f"for at least {min_still_s:g} s)")
+    s, e = max(runs, key=lambda r: r[1] - r[0])
+    seconds = (e - s) * n / rate_hz
+    if seconds < min_still_s:
+        raise ValueError(f"gyro offset: longest still stretch is {seconds:.2f} s, need "
+                         f"{min_still_s:g} s")
+    return g_mean[s:e].mean(axis=0), seconds
+
+
+# --- accelerometer ----------------------------------------------------------------
+
+def _sym(p: np.ndarray) -> np.ndarray:
+    return np.array([[p[0], p[3], p[4]], [p[3], p[1], p[5]], [p[4], p[5], p[2]]])
+
+
+def fit_norm_ellipsoid(points: np.ndarray, radius: float, symmetric: bool,
+                       iterations: int = 50) -> tuple[np.ndarray, np.ndarray, float]:
+    """(offset b, matrix M, Jacobian condition) minimising sum (|M (x - b)| - radius)^2.
+
+    Gauss-Newton from the identity (sensor errors are small). Parameters: b, then the
+    diagonal of M, then (symmetric model) its three off-diagonal entries.
+    """
+    x = np.asarray(points, float)
+    b = np.zeros(3)
+    m = np.eye(3)
+    n_mat = 6 if symmetric else 3
+    cond = np.inf
+    for _ in range(iterations):
+        d = x - b
+        y = d @ m.T
+        norm = np.linalg.norm(y, axis=1)
+        u = y / norm[:, None]
+        r = norm - radius
+        jac = np.empty((len(x), 3 + n_mat))
+        jac[:, 0:3] = -u @ m  # d|y|/db = -u^T M
+        for k in range(3):  # diagonal M_kk
+            jac[:, 3 + k] = u[:, k] * d[:, k]
+        if symmetric:  # M_jk = M_kj
+            for col, (j, k) in enumerate(((0, 1), (0, 2), (1, 2))):
+                jac[:, 6 + col] = u[:, j] * d[:, k] + u[:, k] * d[:, j]
+        scale = np.linalg.norm(jac, axis=0)
+        scale[scale == 0.0] = 1.0
+        sv = np.linalg.svd(jac / scale, compute_uv=False)
+        cond = sv[0] / sv[-1] if sv[-1] > 0 else np.inf
+        if not np.isfinite(cond) or cond > MAX_JACOBIAN_CONDITION:
+            return b, m, cond
+        step = np.linalg.lstsq(jac / scale, -r, rcond=None)[0] / scale
+        b = b + step[0:3]
+        diag = np.diag(m) + step[3:6]
+        off = (m[0, 1], m[0, 2], m[1, 2])
+        if symmetric:
+            off = tuple(np.array(off) + step[6:9])
+        m = _sym(np.array([*diag, *off]))
+        if np.max(np.abs(step)) < 1e-12 * max(1.0, radius):
+            break
+    return b, m, cond
+
+
+def fit_accelerometer(gyr: np.ndarray, acc: np.ndarray, rate_hz: float
+                      ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(offset, matrix, report fields) from the static poses in the samples."""
+    poses, _, _ = static_poses(gyr, acc, rate_hz)
+    count = distinct_directions(poses, POSE_SEPARATION_DEG) if len(poses) else 0
+    if count < MIN_POSES:
+        raise ValueError(f"accelerometer: found {count} distinct static pose(s) (at least "
+                         f"{POSE_SEPARATION_DEG:g}° apart, each held still "
+                         f"{MIN_POSE_S:g} s), need {MIN_POSES}; hold the board still on "
+                         "each face (and ideally on edges and corners) in turn")
+    symmetric = count >= MIN_POSES_FULL
+    b, m, cond = fit_norm_ellipsoid(poses, G, symmetric)
+    if cond > MAX_JACOBIAN_CONDITION:
+        raise ValueError(f"accelerometer: the {count} static poses do not cover enough "
+                         f"orientations to determine offset and scale (condition "
+                         f"{cond:.3g}); add poses with gravity along the other axes")
+    before = np.linalg.norm(poses, axis=1)
+    after = np.linalg.norm((poses - b) @ m.T, axis=1)
+    report = {"accel_poses": count, "accel_model": "symmetric" if symmetric else "diagonal",
+              "accel_norm_std_before": float(before.std()),
+              "accel_norm_std_after": float(after.std()),
+              "accel_norm_rms_error_before": float(np.sqrt(np.mean((before - G) ** 2))),
+              "accel_norm_rms_error_after": float(np.sqrt(np.mean((after - G) ** 2)))}
+    return b, m, report
+
+
+# --- magnetometer -----------------------------------------------------------------
+
+def distinct_mag_readings(mag: np.ndarray) -> np.ndarray:
+    """Finite readings, each once: a board holds (and re-sends) the last reading between
+    magnetometer updates, which would weight still moments by how long they lasted."""
+    m = np.asarray(mag, float)
+    m = m[np.all(np.isfinite(m), axis=1)]
+    if len(m) == 0:
+        return m
+    changed = np.concatenate(([True], np.any(np.diff(m, axis=0) != 0.0, axis=1)))
+    return m[changed]
+
+
+def _cube_directions() -> np.ndarray:
+    d = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
+                  if (i, j, k) != (0, 0, 0)], dtype=float)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def fit_magnetometer(mag: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(hard iron, soft iron matrix, report fields) from readings in many orientations.
+
+    Fits the quadric ``x^T A x + 2 g^T x = 1`` to normalised data by linear least
+    squares; the centre is ``-A^-1 g`` and ``(x - c)^T A (x - c) = 1 + c^T A c``.
+    """
+    m = distinct_mag_readings(mag)
+    if len(m) < MIN_MAG_SAMPLES:
+        raise ValueError(f"magnetometer: {len(m)} distinct readings, need "
+                         f"{MIN_MAG_SAMPLES}; turn the board slowly through all "
+                         "orientations")
+    mu = m.mean(axis=0)
+    s = float(np.sqrt(np.mean(np.sum((m - mu) ** 2, axis=1))))
+    if not s > 0.0:
+        raise ValueError("magnetometer: readings do not change; turn the board")
+    z = (m - mu) / s
+    x, y, w = z[:, 0], z[:, 1], z[:, 2]
+    design = np.column_stack([x * x, y * y, w * w, 2 * x * y, 2 * x * w, 2 * y * w,
+                              2 * x, 2 * y, 2 * w])
+    sv = np.linalg.svd(design, compute_uv=False)
+    if sv[-1] <= 0 or sv[0] / sv[-1] > MAX_QUADRIC_CONDITION:
+        raise ValueError("magnetometer: readings span too little of the sphere to fit "
+                         "an ellipsoid (e.g. turned about one axis only); turn the board "
+                         "through all orientations, including upside down")
+    p = np.linalg.lstsq(design, np.ones(len(z)), rcond=None)[0]
+    a = _sym(p[[0, 1, 2, 3, 4, 5]])
+    g = p[6:9]
+    try:
+        centre = -np.linalg.solve(a, g)
+    except np.linalg.LinAlgError:
+        raise ValueError("magnetometer: the readings do not lie on an ellipsoid") from None
+    k = 1.0 + centre @ a @ centre
+    shape = a / k
+    evals, evecs = np.linalg.eigh(shape)
+    if not np.all(evals > 0):
+        raise ValueError("magnetometer: the readings do not lie on an ellipsoid (fit is "
+                         "not closed); turn the board through all orientations, away from "
+                         "magnets and motors")
+    root = evecs @ np.diag(np.sqrt(evals)) @ evecs.T  # unit sphere in normalised units
+    offset = mu + s * centre
+    units = (m - offset) / np.linalg.norm(m - offset, axis=1, keepdims=True)
+    spread = float(np.linalg.eigvalsh(units.T @ units / len(units))[0])
+    covered = int(np.sum(np.max(units @ _cube_directions().T, axis=0) > np.cos(np.pi / 4)))
+    if spread < MIN_MAG_SPREAD or covered < MIN_MAG_DIRECTIONS:
+        raise ValueError(f"magnetometer: readings cover too little of the sphere "
+                         f"(direction spread {spread:.3f}, need {MIN_MAG_SPREAD}; "
+                         f"{covered} of 26 directions, need {MIN_MAG_DIRECTIONS}); turn "
+                         "the board through all orientations, including upside down")
+    strength = float(np.mean(np.linalg.norm(m - offset, axis=1)))
+    matrix = strength * root / s
+    before = np.linalg.norm(m, axis=1)
+    after = np.linalg.norm((m - offset) @ matrix.T, axis=1)
+    report = {"mag_samples": len(m), "mag_spread": spread,
+              "mag_norm_rel_std_before": float(before.std() / before.mean()),
+              "mag_norm_rel_std_after": float(after.std() / after.mean())}
+    return offset, matrix, report
+
+
+# --- all together -------------------------------------------------------------------
+
+def fit_calibration(gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None,
+                    rate_hz: float, gyro: bool = True, accel: bool = True,
+                    magnetometer: bool = True) -> tuple[SensorCalibration, FitReport]:
+    """Fit the requested parts (the others stay identity); ValueError if one cannot be."""
+    values: dict[str, np.ndarray] = {}
+    report: dict = {}
+    if gyro:
+        values["gyro_offset"], report["gyro_still_s"] = fit_gyro_offset(gyr, acc, rate_hz)
+    if accel:
+        values["accel_offset"], values["accel_matrix"], r = fit_accelerometer(gyr, acc,
+                                                                              rate_hz)
+        report.update(r)
+    if magnetometer:
+        if mag is None:
+            raise ValueError("magnetometer: the samples have no magnetometer readings "
+                             "(skip it with --no-mag)")
+        values["mag_offset"], values["mag_matrix"], r = fit_magnetometer(mag)
+        report.update(r)
+    return SensorCalibration(**values), FitReport(**report)

@@ -48,7 +48,9 @@ implemented here from the formulas; the bias filter is our own.
   divided by ``bias_step_speedup``, so the attitude error the step built up is removed
   as the bias is learned. Measured on the emulator's ``flight`` (5 °/s steps on each
   body axis, 2 seeds): peak error 10–17° (was 15–27°), bias within 1 °/s after 4–8 s,
-  error back under 3° after 5–14 s for most steps (was: not within 25 s). Detection
+  error back under 3° after 5–14 s for most steps (was: not within 25 s). Not solved:
+  on seed 5 with a vertical step at 25 s the estimate oscillates after learning the
+  step (error 8–23° for the next 20 s; 13–32° without step following). Detection
   needs ~4 s (3 sigmas of innovations that are averaged over 1 s and modelled noisy
   enough for BROAD's fast motions); detecting sooner made false detections on
   BROAD's fast combined trial (2.8 sigmas: 3.8 -> 8° there). ``bias_max`` is 20 °/s, the
@@ -240,7 +242,8 @@ _STEP_T = _S + 86  # time left [s] of raised bias random walk after a detected s
 _COEF_FAST = _S + 87  # 1.0 when the coefficients below are the faster step-following ones
 _MLP = _S + 88  # 3: magnetometer low-pass, body frame (rest detection)
 _MPF = _S + 91  # 3: magnetometer pre-filter
-_STATE_SIZE = _S + 94
+_MAG_STEADY = _S + 94  # 1.0 if the last usable magnetometer reading was steady
+_STATE_SIZE = _S + 95
 
 
 @njit(cache=True, inline="always")
@@ -441,9 +444,11 @@ def _setup(state, params) -> None:
 
 @njit(cache=True, inline="always")
 def _mag_steady(state, params, mx, my, mz, mag_ok) -> bool:
-    """Update the magnetometer rest filters; True if its direction is steady."""
+    """Update the magnetometer rest filters; True if its direction is steady. A missing
+    or rejected reading keeps the last verdict (a magnet nearby says nothing about
+    whether the vehicle turns)."""
     if not mag_ok:
-        return False
+        return state[_MAG_STEADY] > 0.0
     k, kp = state[_K_REST], state[_K_PRE]
     if state[_MLP] == 0.0 and state[_MLP + 1] == 0.0 and state[_MLP + 2] == 0.0:
         for j, v in enumerate((mx, my, mz)):
@@ -459,7 +464,9 @@ def _mag_steady(state, params, mx, my, mz, mag_ok) -> bool:
         return False
     cx, cy, cz = ly * pz - lz * py, lz * px - lx * pz, lx * py - ly * px
     sin_dev = math.sqrt(cx * cx + cy * cy + cz * cz) / (nl * npf)
-    return sin_dev < math.sin(params[_P_REST_MAG])
+    steady = sin_dev < math.sin(params[_P_REST_MAG])
+    state[_MAG_STEADY] = 1.0 if steady else 0.0
+    return steady
 
 
 @njit(cache=True, inline="always")
@@ -487,7 +494,9 @@ def _rest_detection(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, m
     # direction tells them apart. Without it (or once the bias has been measured at
     # rest) a steady gyro far from b̂ is taken for a slow turn, not for bias.
     lim = params[_P_REST_BIAS]
-    if _mag_steady(state, params, mx, my, mz, mag_ok) and state[_REST_SEEN] <= 0.0:
+    # (A reading the disturbance check rejected last sample keeps the last verdict.)
+    usable = mag_ok and state[_core.MAG_REJ] <= 0.0
+    if _mag_steady(state, params, mx, my, mz, usable) and state[_REST_SEEN] <= 0.0:
         lim = params[_P_B_MAX]
     b = _core.B0
     steady = steady and abs(state[_GLP] - state[b]) < lim \

@@ -146,6 +146,10 @@ FAULTS = {
     "vibration": FaultConfig(vibration_g=0.3, vibration_dps=2.0),
     "gyro_bias_step": FaultConfig(gyro_bias_step_rate_hz=0.5),
 }
+#: Stream length per fault [s]: vibration never ends, so it is judged after the same
+#: 10 s of convergence as the fault-free flight; magnets come every ~3 s, and each
+#: must be followed by 2 s without one to be judged.
+FAULT_DURATION_S = {"vibration": 15.0, "mag_disturbance": 20.0}
 
 
 def check_counts(kind: str, injected: dict, status: dict) -> None:
@@ -189,24 +193,66 @@ def check_counts(kind: str, injected: dict, status: dict) -> None:
 
 
 #: Faults that end and that the bridge itself handles (drops, holds, resyncs): the
-#: output must be back on the fault-free estimate shortly after. Vibration and gyro bias
-#: steps never end, and how fast the heading recovers from a magnet is the estimator's
-#: business: for those the bridge must keep running and count what it can see.
+#: output must be back on the fault-free estimate shortly after.
 RECOVERY_CHECKED = {"loss", "duplicate", "reorder", "corrupt", "truncate", "time_jump",
                     "time_backwards", "saturation", "stuck"}
+
+
+def mag_disturbed_until(rec) -> np.ndarray:
+    """Per IMU sample: board time [s] at which the magnet seen so far went away (-inf
+    before the first one). A calibrated board reads the Earth's field to a few mG, the
+    injected magnet is 0.6 G: a reading 0.2 G off the true field is disturbed."""
+    disturbed = np.linalg.norm(rec.mag - rec.truth_mag, axis=1) > 0.2
+    t = rec.time_us * 1e-6
+    ends = np.where(disturbed, t, -np.inf)
+    return np.maximum.accumulate(ends)
+
+
+def check_against_truth(kind: str, cfg: EmulatorConfig, listener: UdpListener,
+                        status: dict) -> None:
+    """Faults that change what the sensors measure, judged against the truth."""
+    rec = simulate(cfg)  # the same seed: the same faults, with their timing
+    est, ref, stamps = truth_at_outputs(listener)
+    t = stamps * 1e-3
+    t0 = rec.time_us[0] * 1e-6
+    err = np.degrees(Q.angle_between(est, ref))
+    if kind == "vibration":
+        # Vibration never ends: after the same 10 s of convergence as the fault-free
+        # flight, the attitude stays within 2°.
+        late = t >= t0 + 10.0
+        assert late.sum() > 150 and err[late].max() < 2.0, err[late].max()
+    elif kind == "mag_disturbance":
+        # Each magnet lasts 1 s: 2 s after it went away (and after 5 s on the ground,
+        # where the filters start), the attitude is within 2°.
+        assert rec.faults.mag_disturbances == status["injected"]["mag_disturbances"]
+        rec_t = rec.time_us * 1e-6
+        at = np.clip(np.searchsorted(rec_t, t, side="right") - 1, 0, len(rec_t) - 1)
+        until = mag_disturbed_until(rec)[at]
+        judged = (t >= until + 2.0) & (t >= t0 + 5.0)
+        assert judged.sum() > 100
+        assert err[judged].max() < 2.0, err[judged].max()
+        # After the same 10 s of convergence as the fault-free flight: within 2° whether
+        # a magnet is present or not (it is rejected).
+        assert err[t >= t0 + 10.0].max() < 2.0
+    elif kind == "gyro_bias_step":
+        # NOT a recovery check: a 5 °/s step shows only through the slowly filtered
+        # attitude errors and eskf does not yet learn it reliably in flight (see the
+        # issue note); the bridge must keep running, finite, and count the steps.
+        assert np.all(np.isfinite(est))
 
 
 @pytest.mark.parametrize("kind", list(FAULTS))
 @async_test
 async def test_fault_is_counted_and_estimate_recovers(kind):
-    duration = 10.0
+    duration = FAULT_DURATION_S.get(kind, 10.0)
     cfg = EmulatorConfig(profile="flight", duration_s=duration, seed=5, fast=True,
                          faults=FAULTS[kind], **CALIBRATED)
     listener, stats, status = await run_emulator_through_bridge(cfg)
     rec, q_offline = offline_run(cfg)
     raw = np.hstack([rec.gyr_counts, rec.acc_counts])
     status["baseline_repeats"] = int(np.all(raw[1:] == raw[:-1], axis=1).sum())
-    check_counts(kind, stats.faults.to_dict(), status)
+    status["injected"] = stats.faults.to_dict()
+    check_counts(kind, status["injected"], status)
     if kind.startswith("time_"):
         est, ref = offline_by_sample_order(listener, q_offline)
     else:
@@ -221,3 +267,5 @@ async def test_fault_is_counted_and_estimate_recovers(kind):
         # Faults here are short and sparse, so the last second of the run lies 2 s or
         # more after nearly all of them: by then the output is back on the estimate.
         assert np.max(dev[-50:]) < 2.0, (kind, dev[-50:].max())
+    else:
+        check_against_truth(kind, cfg, listener, status)

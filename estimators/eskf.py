@@ -49,8 +49,11 @@ implemented here from the formulas; the bias filter is our own.
   as the bias is learned. Measured on the emulator's ``flight`` (5 °/s steps on each
   body axis, 2 seeds): peak error 10–17° (was 15–27°), bias within 1 °/s after 4–8 s,
   error back under 3° after 5–14 s for most steps (was: not within 25 s). Not solved:
-  on seed 5 with a vertical step at 25 s the estimate oscillates after learning the
-  step (error 8–23° for the next 20 s; 13–32° without step following). Detection
+  with steps 11 s apart (seed 5: z at 25 s, x at 36 s) the error stays 5–23° from 27
+  to 44 s (13–32° without step following), and a pitch-axis step is first seen by the
+  heading channel — a tilt error leaks into the heading through the 65° dip — which
+  blames the vertical bias (b̂z 5 °/s off for a while); a joint attitude-error + bias
+  filter would separate them. Detection
   needs ~4 s (3 sigmas of innovations that are averaged over 1 s and modelled noisy
   enough for BROAD's fast motions); detecting sooner made false detections on
   BROAD's fast combined trial (2.8 sigmas: 3.8 -> 8° there). ``bias_max`` is 20 °/s, the

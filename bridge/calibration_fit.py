@@ -24,9 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .boards import G
 from .calibration import SensorCalibration
-
-G = 9.80665
 
 # --- still detection --------------------------------------------------------------
 BLOCK_S = 0.1  # samples are judged in blocks of this length

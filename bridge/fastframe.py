@@ -17,6 +17,7 @@ with the same header, so nothing downstream can tell the difference (tested).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from fastcrc.crc16 import mcrf4xx
@@ -36,7 +37,7 @@ class _FrameType:
     msg_id: int
     crc_extra: bytes  # one byte, appended to the checksummed bytes
     payload_size: int  # full (untruncated) payload length
-    unpack: object  # struct.Struct.unpack of the payload
+    unpack: Callable[[bytes], tuple]  # struct.Struct.unpack of the payload
 
 
 def _frame_type(cls: type) -> _FrameType:

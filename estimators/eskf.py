@@ -393,44 +393,40 @@ def _dot_b(state, i) -> float:
 
 
 @njit(cache=True, inline="always")
-def _inflate_on_step(state, i_mean, h0, h1, h2, innovation, r, k, nsig2, pmax) -> bool:
+def _inflate_on_step(state, params, i_mean, h0, h1, h2, innovation, r, k, nsig2,
+                     pmax) -> None:
     """Bias steps: let the covariance along h grow when the averaged innovation says so.
 
     ``state[i_mean]`` low-passes the innovation (gain k, averaging ~1/k samples, so its
     noise variance is ≈ r·k/2). When its square exceeds ``nsig2`` times what the filter
     predicts (h·P·hᵀ plus that noise) the bias has changed by far more than the random
     walk allows; P is raised along h until h·P·hᵀ equals the squared mean, so the next
-    updates can follow the step. Below the gate nothing changes. True if it fired.
+    updates can follow the step, and for ``bias_step_hold`` the filter follows it
+    (raised bias random walk on every axis, faster attitude loops; raising it only along
+    h was tried: x/y steps then left a residual error > 3° for 20 s). Below the gate
+    nothing changes.
     """
     m = state[i_mean] + k * (innovation - state[i_mean])
     state[i_mean] = m
     hh = h0 * h0 + h1 * h1 + h2 * h2
     if hh < 1e-6:
-        return False
+        return
     p = _PB
     ph0 = state[p] * h0 + state[p + 1] * h1 + state[p + 2] * h2
     ph1 = state[p + 3] * h0 + state[p + 4] * h1 + state[p + 5] * h2
     ph2 = state[p + 6] * h0 + state[p + 7] * h1 + state[p + 8] * h2
     hph = h0 * ph0 + h1 * ph1 + h2 * ph2
     if m * m <= nsig2 * (hph + 0.5 * r * k):
-        return False
+        return
+    state[_STEP_T] = params[_P_STEP_HOLD]
     target = min(m * m, pmax * hh)  # never beyond the initial uncertainty (loop stability)
     if target <= hph:
-        return True
+        return
     add = (target - hph) / (hh * hh)
     hv = (h0, h1, h2)
     for a in range(3):
         for b in range(3):
             state[p + 3 * a + b] += add * hv[a] * hv[b]
-    return True
-
-
-@njit(cache=True, inline="always")
-def _follow_step(state, params) -> None:
-    """Enter (or prolong) step-following: raised bias random walk on every axis and
-    faster attitude loops for bias_step_hold. (Raising it only along the detecting
-    channel's row was tried: x/y steps then left a residual error > 3° for 20 s.)"""
-    state[_STEP_T] = params[_P_STEP_HOLD]
 
 
 @njit(cache=True, inline="always")
@@ -446,25 +442,44 @@ def _setup(state, params) -> None:
 
 
 @njit(cache=True, inline="always")
+def _track(state, i_lp, i_pf, x, y, z, k, kp, first) -> tuple:
+    """Rest detection's filter pair of one sensor: a low-pass (gain k) and a faster
+    pre-filter (gain kp, removes vibration), both started at the first sample; returns
+    pre-filter − low-pass, the recent change."""
+    if first:
+        state[i_lp], state[i_lp + 1], state[i_lp + 2] = x, y, z
+        state[i_pf], state[i_pf + 1], state[i_pf + 2] = x, y, z
+    state[i_lp] += k * (x - state[i_lp])
+    state[i_lp + 1] += k * (y - state[i_lp + 1])
+    state[i_lp + 2] += k * (z - state[i_lp + 2])
+    state[i_pf] += kp * (x - state[i_pf])
+    state[i_pf + 1] += kp * (y - state[i_pf + 1])
+    state[i_pf + 2] += kp * (z - state[i_pf + 2])
+    return (state[i_pf] - state[i_lp], state[i_pf + 1] - state[i_lp + 1],
+            state[i_pf + 2] - state[i_lp + 2])
+
+
+@njit(cache=True, inline="always")
+def _unset(state, i) -> bool:
+    return state[i] == 0.0 and state[i + 1] == 0.0 and state[i + 2] == 0.0
+
+
+@njit(cache=True, inline="always")
 def _mag_steady(state, params, mx, my, mz, mag_ok) -> bool:
     """Update the magnetometer rest filters; True if its direction is steady. A missing
     or rejected reading keeps the last verdict (a magnet nearby says nothing about
     whether the vehicle turns)."""
     if not mag_ok:
         return state[_MAG_STEADY] > 0.0
-    k, kp = state[_K_REST], state[_K_PRE]
-    if state[_MLP] == 0.0 and state[_MLP + 1] == 0.0 and state[_MLP + 2] == 0.0:
-        for j, v in enumerate((mx, my, mz)):
-            state[_MLP + j], state[_MPF + j] = v, v
-    for j, v in enumerate((mx, my, mz)):
-        state[_MLP + j] += k * (v - state[_MLP + j])
-        state[_MPF + j] += kp * (v - state[_MPF + j])
+    _track(state, _MLP, _MPF, mx, my, mz, state[_K_REST], state[_K_PRE],
+           _unset(state, _MLP))
     lx, ly, lz = state[_MLP], state[_MLP + 1], state[_MLP + 2]
     px, py, pz = state[_MPF], state[_MPF + 1], state[_MPF + 2]
     nl = math.sqrt(lx * lx + ly * ly + lz * lz)
     npf = math.sqrt(px * px + py * py + pz * pz)
     if nl <= 0.0 or npf <= 0.0:
         return False
+    # |lp × pf| / (|lp| |pf|): sine of the direction change
     cx, cy, cz = ly * pz - lz * py, lz * px - lx * pz, lx * py - ly * px
     sin_dev = math.sqrt(cx * cx + cy * cy + cz * cz) / (nl * npf)
     steady = sin_dev < math.sin(params[_P_REST_MAG])
@@ -477,19 +492,9 @@ def _rest_detection(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, m
                     dt) -> bool:
     """Update the rest low-passes; True once gyro and accelerometer stayed steady."""
     k, kp = state[_K_REST], state[_K_PRE]
-    if state[_RUN_T] == 0.0:
-        state[_GLP], state[_GLP + 1], state[_GLP + 2] = gx, gy, gz  # first sample
-        state[_GPF], state[_GPF + 1], state[_GPF + 2] = gx, gy, gz
-    state[_GLP] += k * (gx - state[_GLP])
-    state[_GLP + 1] += k * (gy - state[_GLP + 1])
-    state[_GLP + 2] += k * (gz - state[_GLP + 2])
     # The deviation is checked on pre-filtered samples: vibration (motors, tens of Hz)
     # is not motion of the vehicle and must not prevent rest detection.
-    state[_GPF] += kp * (gx - state[_GPF])
-    state[_GPF + 1] += kp * (gy - state[_GPF + 1])
-    state[_GPF + 2] += kp * (gz - state[_GPF + 2])
-    dgx, dgy, dgz = (state[_GPF] - state[_GLP], state[_GPF + 1] - state[_GLP + 1],
-                     state[_GPF + 2] - state[_GLP + 2])
+    dgx, dgy, dgz = _track(state, _GLP, _GPF, gx, gy, gz, k, kp, state[_RUN_T] == 0.0)
     steady = dgx * dgx + dgy * dgy + dgz * dgz < params[_P_REST_GYR] ** 2
     # Before the first rest the bias is an uncalibrated zero-rate offset that may lie
     # anywhere within bias_max (an MPU6050 offset of 2-3 °/s is common). A steady turn
@@ -499,23 +504,13 @@ def _rest_detection(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, m
     lim = params[_P_REST_BIAS]
     # (A reading the disturbance check rejected last sample keeps the last verdict.)
     usable = mag_ok and state[_core.MAG_REJ] <= 0.0
-    if _mag_steady(state, params, mx, my, mz, usable) and state[_REST_SEEN] <= 0.0:
+    if state[_REST_SEEN] <= 0.0 and _mag_steady(state, params, mx, my, mz, usable):
         lim = params[_P_B_MAX]
     b = _core.B0
     steady = steady and abs(state[_GLP] - state[b]) < lim \
         and abs(state[_GLP + 1] - state[b + 1]) < lim and abs(state[_GLP + 2] - state[b + 2]) < lim
     if acc_ok:
-        if state[_RLP] == 0.0 and state[_RLP + 1] == 0.0 and state[_RLP + 2] == 0.0:
-            state[_RLP], state[_RLP + 1], state[_RLP + 2] = ax, ay, az  # first sample
-            state[_APF], state[_APF + 1], state[_APF + 2] = ax, ay, az
-        state[_RLP] += k * (ax - state[_RLP])
-        state[_RLP + 1] += k * (ay - state[_RLP + 1])
-        state[_RLP + 2] += k * (az - state[_RLP + 2])
-        state[_APF] += kp * (ax - state[_APF])
-        state[_APF + 1] += kp * (ay - state[_APF + 1])
-        state[_APF + 2] += kp * (az - state[_APF + 2])
-        dax, day, daz = (state[_APF] - state[_RLP], state[_APF + 1] - state[_RLP + 1],
-                         state[_APF + 2] - state[_RLP + 2])
+        dax, day, daz = _track(state, _RLP, _APF, ax, ay, az, k, kp, _unset(state, _RLP))
         steady = steady and dax * dax + day * day + daz * daz < params[_P_REST_ACC] ** 2
     else:
         steady = False
@@ -718,22 +713,19 @@ def _bias_update(state, params, at_rest, rx, ry, acc_used, dt) -> None:
     elif acc_used and state[_RUN_T] >= params[_P_TAU_ACC]:
         r = params[_P_B_MOTION] ** 2 / dt
         nu = -rx / dt + state[_XB + 1] - _dot_b(state, _HP)
-        if _inflate_on_step(state, _STEP_M, state[_HP], state[_HP + 1], state[_HP + 2],
-                            nu, r, ks, nsig2, pmax):
-            _follow_step(state, params)
+        _inflate_on_step(state, params, _STEP_M, state[_HP], state[_HP + 1],
+                         state[_HP + 2], nu, r, ks, nsig2, pmax)
         _bias_scalar_update(state, state[_HP], state[_HP + 1], state[_HP + 2], nu, r, bmax)
         nu = -ry / dt + state[_XB + 3] - _dot_b(state, _HP + 3)
-        if _inflate_on_step(state, _STEP_M + 1, state[_HP + 3], state[_HP + 4],
-                            state[_HP + 5], nu, r, ks, nsig2, pmax):
-            _follow_step(state, params)
+        _inflate_on_step(state, params, _STEP_M + 1, state[_HP + 3], state[_HP + 4],
+                         state[_HP + 5], nu, r, ks, nsig2, pmax)
         _bias_scalar_update(state, state[_HP + 3], state[_HP + 4], state[_HP + 5], nu, r,
                             bmax)
     if not at_rest and state[_MAG_BIAS_OK] > 0.0:
         r = params[_P_B_MAG] ** 2 / dt
         nu = -state[_MAG_RZ] / dt + state[_ZB] - _dot_b(state, _HZ)
-        if _inflate_on_step(state, _STEP_M + 2, state[_HZ], state[_HZ + 1],
-                            state[_HZ + 2], nu, r, ks, nsig2, pmax):
-            _follow_step(state, params)
+        _inflate_on_step(state, params, _STEP_M + 2, state[_HZ], state[_HZ + 1],
+                         state[_HZ + 2], nu, r, ks, nsig2, pmax)
         _bias_scalar_update(state, state[_HZ], state[_HZ + 1], state[_HZ + 2], nu, r, bmax)
 
 

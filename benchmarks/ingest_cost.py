@@ -18,9 +18,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bridge.boards import gy86
 from bridge.ingest import Ingest
 from bridge.mav import mavlink
+from imu.boards import gy86
 
 N = 5000
 REPEATS = 7
@@ -69,7 +69,7 @@ def main() -> None:
     args = parser.parse_args()
     calibration = None
     if args.calibration:
-        from bridge.calibration import SensorCalibration
+        from imu.calibration import SensorCalibration
 
         calibration = SensorCalibration.load(args.calibration)
     for kind in ("RAW_IMU", "SCALED_IMU", "HIGHRES_IMU"):

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .calibration_fit import BLOCK_S, fit_calibration
+from imu.calibration_fit import BLOCK_S, fit_calibration
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -34,7 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "files are pooled")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="CALIB.toml")
     p.add_argument("--board", default="gy86",
-                   help="what RAW_IMU integers in a tlog mean (bridge.boards; default gy86)")
+                   help="what RAW_IMU integers in a tlog mean (imu.boards; default gy86)")
     p.add_argument("--rotation", default="NONE", metavar="NAME",
                    help="board mounting rotation, as given to `run` (default NONE)")
     p.add_argument("--imu", default=None, help="tlog IMU message (default: first present)")
@@ -80,7 +80,7 @@ def log_samples(paths: list[Path], board: str, imu: str | None
 
 
 def main(args: argparse.Namespace) -> int:
-    from .rotations import rotation_matrix
+    from imu.rotations import rotation_matrix
 
     try:
         rot = rotation_matrix(args.rotation)

@@ -14,12 +14,12 @@ from typing import Any
 
 import estimators
 from estimators.spec import EstimatorSpec
+from imu.boards import PROFILES
+from imu.calibration import SensorCalibration
+from imu.rotations import rotation_matrix
 
-from .boards import PROFILES
-from .calibration import SensorCalibration
 from .ingest import IMU_MESSAGE_NAMES
 from .mav import BRIDGE_COMPONENT_ID
-from .rotations import rotation_matrix
 
 #: Preferred default primary estimator, first one available wins.
 DEFAULT_ESTIMATORS = ("eskf", "mahony", "madgwick", "quaternion")

@@ -3,7 +3,7 @@
 Reads RAW_IMU (through a board profile that states what its integers mean),
 SCALED_IMU / SCALED_IMU2 / SCALED_IMU3 (mG, mrad/s, mgauss, FRD) and HIGHRES_IMU
 (m/s^2, rad/s, gauss, FRD), applies the board mounting rotation and the sensor
-calibration (:mod:`bridge.calibration`, folded into one matrix), and stamps each
+calibration (:mod:`imu.calibration`, folded into one matrix), and stamps each
 sample with the message's own time. Every source — (sysid, compid, IMU id) — has its
 own clock and counters, so several vehicles or IMUs can share one link.
 
@@ -31,9 +31,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from imu.boards import BoardProfile
+from imu.calibration import SensorCalibration
+
 from . import clock as C
-from .boards import BoardProfile
-from .calibration import SensorCalibration
 from .mav import MAVLinkMessage, mavlink
 
 MG = 9.80665e-3  # m/s^2 per milli-g

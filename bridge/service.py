@@ -20,7 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from .boards import board_profile
+from imu.boards import board_profile
+from imu.rotations import rotation_matrix
+
 from .codec import SigningConfig, load_signing_key
 from .compare import References, compare_all
 from .config import BridgeConfig
@@ -30,7 +32,6 @@ from .mav import MAVLinkMessage, mavlink
 from .mqtt import MqttPublisher, MqttSettings
 from .output import AttitudeOutput, euler_zyx
 from .pipeline import Estimate, Pipeline
-from .rotations import rotation_matrix
 from .sequence import SequenceTracker
 
 log = logging.getLogger(__name__)

@@ -52,7 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _input_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--board", default="ardupilot",
-                   help="RAW_IMU board profile for tlogs (bridge.boards; default ardupilot)")
+                   help="RAW_IMU board profile for tlogs (imu.boards; default ardupilot)")
     p.add_argument("--imu", default=None, help="tlog IMU message (HIGHRES_IMU, RAW_IMU, "
                    "SCALED_IMU, SCALED_IMU2, SCALED_IMU3; default: first present in that order)")
     p.add_argument("--reference", choices=("auto", "truth", "autopilot"), default="auto",

@@ -16,11 +16,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bridge import boards
 from bridge.config import BridgeConfig
 from bridge.mav import mavlink
 from bridge.service import BridgeService
 from estimators import quat as Q
+from imu import boards
 
 G = 9.80665
 #: A magnetic field in NED [gauss]: north and down (inclination ~60°), no declination.

@@ -10,7 +10,6 @@ import pytest
 from bridge_support import MAG_NED, G, euler_q, gy86_counts
 
 from bridge import clock as C
-from bridge.boards import gy86
 from bridge.codec import MavCodec, SigningConfig, load_signing_key, signing_key_from_text
 from bridge.compare import compare_series
 from bridge.config import BridgeConfig
@@ -19,10 +18,11 @@ from bridge.links import parse_url
 from bridge.mav import mavlink
 from bridge.mqtt import MqttSettings
 from bridge.output import euler_zyx
-from bridge.rotations import rotation_matrix
 from bridge.sequence import SequenceTracker
 from estimators import quat as Q
 from estimators.spec import EstimatorSpec
+from imu.boards import gy86
+from imu.rotations import rotation_matrix
 
 
 def verdicts(clock: C.SampleClock, stamps: list[int]) -> list[str]:

@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 from bridge_support import MAG_NED, G, euler_q, gy86_counts
 
-from bridge.boards import gy86
 from bridge.calibrate_cli import log_samples
-from bridge.calibration import SensorCalibration
-from bridge.calibration_fit import fit_calibration, fit_magnetometer, static_poses
 from bridge.cli import main as cli_main
 from bridge.config import BridgeConfig
 from bridge.ingest import Ingest
 from bridge.mav import mavlink
 from estimators import quat as Q
+from imu.boards import gy86
+from imu.calibration import SensorCalibration
+from imu.calibration_fit import fit_calibration, fit_magnetometer, static_poses
 
 RATE = 200.0
 #: Known errors (numbers chosen here): corrected = M @ (raw - offset) must undo them.

@@ -17,14 +17,14 @@ from bridge_support import UdpListener, running_bridge, wait_until
 
 import estimators
 from bridge.calibrate_cli import emulator_samples
-from bridge.calibration import SensorCalibration
-from bridge.calibration_fit import fit_calibration
 from bridge.emulator import emulator_declination_deg
 from estimators import metrics
 from estimators import quat as Q
 from hil import Emulator, EmulatorConfig, simulate
 from hil.motion import calibration_duration_s
 from hil.sensors.hmc5883l import Hmc5883lConfig
+from imu.calibration import SensorCalibration
+from imu.calibration_fit import fit_calibration
 
 RATE_HZ = 250.0
 #: Seeds whose uncalibrated board puts eskf off by more than 2° RMS on `flight` (checked

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from bridge import boards
 from hil.sensors import hmc5883l, mpu6050, ms5611
 from hil.sensors.dlpf import LowPass
+from imu import boards
 
 # ---- MPU6050 ------------------------------------------------------------------------
 

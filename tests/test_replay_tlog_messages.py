@@ -13,7 +13,7 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import common
 
 import replay
-from bridge.boards import gy86
+from imu.boards import gy86
 from replay.synthetic import SyntheticConfig, generate
 
 G = 9.80665

@@ -42,7 +42,7 @@ def load(path: str | Path, fmt: str | None = None, board: str = "ardupilot",
          imu: str | None = None, reference: str = "auto") -> Recording:
     """Read a log or dataset file into a :class:`Recording`.
 
-    ``board`` names the RAW_IMU profile for tlogs (``bridge.boards``); ``imu`` picks the
+    ``board`` names the RAW_IMU profile for tlogs (``imu.boards``); ``imu`` picks the
     IMU stream when a file has several (a tlog message name, or a ULog multi-instance
     ``sensor_combined`` is the only one). Errors are :class:`ReplayInputError` with the
     file name and what was expected.

@@ -1,7 +1,7 @@
 """MAVLink telemetry log (.tlog): IMU messages and attitude references, by their own clocks.
 
 IMU, in order of preference (or ``imu=`` to choose): HIGHRES_IMU (SI, gauss), RAW_IMU
-(integers whose meaning depends on the sender: a ``bridge.boards`` profile, default
+(integers whose meaning depends on the sender: a ``imu.boards`` profile, default
 ``ardupilot`` = mG, mrad/s, mGauss in FRD), SCALED_IMU/2/3 (mG, mrad/s, mgauss, FRD).
 References: HIL_STATE_QUATERNION is truth; ATTITUDE_QUATERNION, else ATTITUDE (Z-Y-X
 Euler), from the same vehicle component as the IMU is the autopilot's own estimate.
@@ -34,7 +34,7 @@ SESSION_PAD_S = 1.0  # reference messages this close to a session's ends belong 
 
 def read(path: Path, board: str = "ardupilot", imu: str | None = None,
          reference: str = "auto") -> Recording:
-    from bridge.boards import board_profile
+    from imu.boards import board_profile
 
     profile = board_profile(board)
     if imu is not None and imu.upper() not in IMU_MESSAGES:

@@ -1,4 +1,4 @@
-"""Fitting a :class:`~bridge.calibration.SensorCalibration` from recorded samples.
+"""Fitting a :class:`~imu.calibration.SensorCalibration` from recorded samples.
 
 Three independent fits, numpy least squares only:
 

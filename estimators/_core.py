@@ -11,6 +11,15 @@ output in the requested world frame. ``make_kernels(step)`` closes over it and r
 ``run_batch`` (a compiled loop, called by ``batch``). Both run the very same code per
 sample, which is why ``batch`` equals ``update`` bit for bit.
 
+Velocity aiding (optional, per sample): the vehicle's world-frame velocity, NaN where no
+new measurement arrives, with its age (how long before this sample it was valid). The
+driver turns it into the internal frame. For an ordinary step it differentiates
+consecutive measurements into a linear acceleration (as PX4's attitude_estimator_q does)
+and removes it from the specific force before the step sees the accelerometer, so that
+every estimator that takes the accelerometer for gravity is aided alike. A step built
+with ``make_kernels(step, takes_velocity=True)`` instead receives the velocity itself,
+``step(..., dt, vx, vy, vz, v_age)``, and models it (eskf).
+
 Internally every estimator works in NED (gravity reference ``[0, 0, -1]`` for the
 accelerometer's specific force direction, magnetic north along +x); ENU is a fixed
 left-multiplication applied on output.
@@ -27,13 +36,53 @@ import numpy as np
 from numba import njit, types
 from numba.core.caching import FunctionCache
 
+
+def _package_digest() -> str:
+    """Digest of every source file of this package.
+
+    numba's own cache check looks only at the file that defines a function, but the
+    compiled code freezes globals read from other modules (``_core.PRIVATE`` inside an
+    estimator's step, say). After an update that changes ``_core`` but not the estimator's
+    file, a cached step would silently run with the old layout. Every cache key here
+    includes this digest, so any change to the package recompiles everything once.
+    """
+    h = hashlib.sha256()
+    for f in sorted(Path(__file__).parent.glob("*.py")):
+        h.update(f.name.encode() + f.read_bytes())
+    return h.hexdigest()
+
+
+PACKAGE_DIGEST = _package_digest()
+
+
+class _PackageKeyedCache(FunctionCache):
+    """numba's disk cache with :data:`PACKAGE_DIGEST` in every key."""
+
+    def _index_key(self, sig, codegen):
+        return (*super()._index_key(sig, codegen), PACKAGE_DIGEST)
+
+
+def kernel(fn=None, **options):
+    """``njit(cache=True, **options)`` whose cache entries are keyed by the package digest
+    (use instead of ``njit(cache=True)`` for every compiled function of the package)."""
+    def wrap(f):
+        dispatcher = njit(cache=True, **options)(f)
+        dispatcher._cache = _PackageKeyedCache(dispatcher.py_func)
+        return dispatcher
+    return wrap if fn is None else wrap(fn)
+
 # --- state vector layout (float64), shared by all estimators -------------------
 Q0, Q1, Q2, Q3 = 0, 1, 2, 3  # attitude, body -> NED
 B0 = 4  # gyro bias estimate [rad/s] in state[4:7] (zeros when not estimated)
 INIT = 7  # 1.0 once initialised
 ACC_REJ = 8  # 1.0 when the last sample's accelerometer was rejected as disturbed
 MAG_REJ = 9  # 1.0 when the last sample's magnetometer was rejected as disturbed
-PRIVATE = 10  # first index an estimator may use for its own state
+# Velocity aiding, kept by the driver (internal frame: magnetic NED):
+AID_V = 10  # 3: last velocity measurement per axis [m/s]
+AID_VT = 13  # 3: when it was valid, on the RUN_T clock [s] (-inf: none yet)
+AID_A = 16  # 3: linear acceleration from the last two measurements per axis [m/s^2]
+RUN_T = 19  # run clock: sum of the steps of the samples processed [s]
+PRIVATE = 20  # first index an estimator may use for its own state
 
 # --- counters (float64 slots of the workspace: whole numbers, exact below 2**53) ------
 C_SAMPLES = 0  # samples offered
@@ -54,8 +103,9 @@ COUNTER_NAMES = (
 P_ACC_RANGE = 0  # full scale [m/s^2]: an axis at >= 99.9 % of it is saturated
 P_GYR_RANGE = 1  # full scale [rad/s]
 P_MAX_DT = 2  # longest usable step [s]
-P_OUT = 3  # state[3:7]: output rotation W, out = W ⊗ q (NED -> ENU and/or declination)
-N_COMMON = 7
+P_OUT = 3  # common[3:7]: output rotation W, out = W ⊗ q (NED -> ENU and/or declination)
+P_AID_TIMEOUT = 7  # longest gap between velocity measurements that still aids [s]
+N_COMMON = 8
 
 # --- per-estimator workspace (float64) for update_one ------------------------------
 # ws = [header | state | params | common | counters | out(4)]; the header holds where
@@ -77,12 +127,12 @@ _SAT_FRACTION = 0.999
 _ACC_MIN_NORM = 1e-3  # m/s^2: below this the direction of gravity is meaningless
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def finite3(x: float, y: float, z: float) -> bool:
     return math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def acc_usable(ax: float, ay: float, az: float, acc_range: float) -> bool:
     """Finite, not ~zero, and no axis clipped at full scale."""
     if not finite3(ax, ay, az):
@@ -93,13 +143,13 @@ def acc_usable(ax: float, ay: float, az: float, acc_range: float) -> bool:
     return ax * ax + ay * ay + az * az > _ACC_MIN_NORM * _ACC_MIN_NORM
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def mag_usable(mx: float, my: float, mz: float) -> bool:
     """Finite and non-zero (units are free, only the direction matters)."""
     return finite3(mx, my, mz) and mx * mx + my * my + mz * mz > 1e-24
 
 
-@njit(cache=True)
+@kernel
 def normalize_q(state: np.ndarray) -> None:
     """Renormalise state[0:4]; an unrecoverable quaternion resets to identity."""
     n = math.sqrt(state[0] ** 2 + state[1] ** 2 + state[2] ** 2 + state[3] ** 2)
@@ -112,7 +162,7 @@ def normalize_q(state: np.ndarray) -> None:
         state[0], state[1], state[2], state[3] = 1.0, 0.0, 0.0, 0.0
 
 
-@njit(cache=True)
+@kernel
 def integrate_first_order(state: np.ndarray, wx: float, wy: float, wz: float,
                           dt: float) -> None:
     """q += 0.5 · q ⊗ [0, w] · dt, then normalise (the seeds' first-order Runge-Kutta)."""
@@ -125,7 +175,7 @@ def integrate_first_order(state: np.ndarray, wx: float, wy: float, wz: float,
     normalize_q(state)
 
 
-@njit(cache=True)
+@kernel
 def integrate_exact(state: np.ndarray, wx: float, wy: float, wz: float, dt: float) -> None:
     """q ← q ⊗ exp(w·dt/2): exact for a rate constant over the step, then normalise."""
     angle = math.sqrt(wx * wx + wy * wy + wz * wz) * dt
@@ -145,7 +195,7 @@ def integrate_exact(state: np.ndarray, wx: float, wy: float, wz: float, dt: floa
     normalize_q(state)
 
 
-@njit(cache=True)
+@kernel
 def body_to_world(state: np.ndarray, vx: float, vy: float, vz: float) -> tuple:
     """R(q) · v for the attitude in state[0:4]."""
     w, x, y, z = state[0], state[1], state[2], state[3]
@@ -156,7 +206,7 @@ def body_to_world(state: np.ndarray, vx: float, vy: float, vz: float) -> tuple:
     )
 
 
-@njit(cache=True)
+@kernel
 def world_to_body(state: np.ndarray, vx: float, vy: float, vz: float) -> tuple:
     """R(q)ᵀ · v for the attitude in state[0:4]."""
     w, x, y, z = state[0], state[1], state[2], state[3]
@@ -167,7 +217,7 @@ def world_to_body(state: np.ndarray, vx: float, vy: float, vz: float) -> tuple:
     )
 
 
-@njit(cache=True)
+@kernel
 def set_q_from_dcm(state: np.ndarray, r00: float, r01: float, r02: float, r10: float,
                    r11: float, r12: float, r20: float, r21: float, r22: float) -> None:
     """state[0:4] ← quaternion of the rotation matrix R (Shepperd's method)."""
@@ -194,7 +244,7 @@ def set_q_from_dcm(state: np.ndarray, r00: float, r01: float, r02: float, r10: f
     normalize_q(state)
 
 
-@njit(cache=True)
+@kernel
 def init_from_acc_mag(state: np.ndarray, ax: float, ay: float, az: float, mx: float,
                       my: float, mz: float, use_mag: bool) -> None:
     """Attitude from one sample: down = -acc; north from the magnetometer, else yaw 0."""
@@ -213,7 +263,7 @@ def init_from_acc_mag(state: np.ndarray, ax: float, ay: float, az: float, mx: fl
     set_q_from_dcm(state, nx, ny, nz, ex, ey, ez, dx, dy, dz)
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def rotate_output(state: np.ndarray, common: np.ndarray) -> tuple:
     """W ⊗ q: the attitude relative to the requested world frame (magnetic NED inside).
 
@@ -229,17 +279,80 @@ def rotate_output(state: np.ndarray, common: np.ndarray) -> tuple:
             pw * z + px * y - py * x + pz * w)
 
 
-@njit(cache=True)
+@kernel
 def write_output(state: np.ndarray, common: np.ndarray, out: np.ndarray) -> None:
     """out ← attitude in the requested world frame."""
     out[0], out[1], out[2], out[3] = rotate_output(state, common)
 
 
+@kernel(inline="always")
+def user_to_internal(common: np.ndarray, vx: float, vy: float, vz: float) -> tuple:
+    """R(W)ᵀ·v: a vector in the user's world frame (true north, NED or ENU) expressed in
+    the estimators' internal magnetic NED (W from ``output_rotation``)."""
+    w, x = common[P_OUT], common[P_OUT + 1]
+    y, z = common[P_OUT + 2], common[P_OUT + 3]
+    return (
+        (1 - 2 * (y * y + z * z)) * vx + 2 * (x * y + w * z) * vy + 2 * (x * z - w * y) * vz,
+        2 * (x * y - w * z) * vx + (1 - 2 * (x * x + z * z)) * vy + 2 * (y * z + w * x) * vz,
+        2 * (x * z + w * y) * vx + 2 * (y * z - w * x) * vy + (1 - 2 * (x * x + y * y)) * vz,
+    )
+
+
+@kernel(inline="always")
+def _track_axis(state: np.ndarray, i: int, v: float, t_valid: float, timeout: float) -> None:
+    if not math.isfinite(v):
+        return
+    gap = t_valid - state[AID_VT + i]
+    if gap <= 0.0:  # not newer than what we have: a repeat or reordered
+        return
+    state[AID_A + i] = (v - state[AID_V + i]) / gap if gap <= timeout else 0.0
+    state[AID_V + i] = v
+    state[AID_VT + i] = t_valid
+
+
+@kernel(inline="always")
+def track_velocity(state: np.ndarray, common: np.ndarray, vx: float, vy: float,
+                   vz: float, v_age: float) -> None:
+    """Differentiate velocity measurements (internal frame) into a linear acceleration.
+
+    Each axis on its own (GPS_RAW_INT has no vertical speed): the difference of two
+    measurements no further apart than the aiding timeout, divided by their time apart;
+    after a longer gap the acceleration is unknown (0) rather than averaged over the gap.
+    """
+    t_valid = state[RUN_T] - v_age
+    timeout = common[P_AID_TIMEOUT]
+    _track_axis(state, 0, vx, t_valid, timeout)
+    _track_axis(state, 1, vy, t_valid, timeout)
+    _track_axis(state, 2, vz, t_valid, timeout)
+
+
+@kernel(inline="always")
+def _aid_axis(state: np.ndarray, i: int, timeout: float) -> float:
+    return state[AID_A + i] if state[RUN_T] - state[AID_VT + i] <= timeout else 0.0
+
+
+@kernel(inline="always")
+def remove_linear_acceleration(state: np.ndarray, common: np.ndarray, ax: float, ay: float,
+                               az: float) -> tuple:
+    """``f − R(q)ᵀ·a_lin``: what gravity alone makes the accelerometer read, given the
+    linear acceleration from the velocity measurements. Axes not measured within the
+    aiding timeout contribute nothing."""
+    timeout = common[P_AID_TIMEOUT]
+    lx = _aid_axis(state, 0, timeout)
+    ly = _aid_axis(state, 1, timeout)
+    lz = _aid_axis(state, 2, timeout)
+    if lx == 0.0 and ly == 0.0 and lz == 0.0:
+        return ax, ay, az
+    bx, by, bz = world_to_body(state, lx, ly, lz)
+    return ax - bx, ay - by, az - bz
+
+
 _VEC = types.float64[::1]
 # update_one's only signatures (see prepare_update): anything else (lists, other
 # dtypes, strided views) raises TypeError; Estimator.update then converts and retries.
-_UPDATE_SIGNATURES = [types.int64(_VEC, _VEC, _VEC, types.none, types.float64),
-                      types.int64(_VEC, _VEC, _VEC, _VEC, types.float64)]
+_UPDATE_SIGNATURES = [
+    types.int64(_VEC, _VEC, _VEC, types.none, types.float64, _VEC, types.float64),
+    types.int64(_VEC, _VEC, _VEC, _VEC, types.float64, _VEC, types.float64)]
 
 
 def make_workspace(state_size: int, params: np.ndarray, common: np.ndarray) -> np.ndarray:
@@ -264,18 +377,21 @@ def workspace_views(ws: np.ndarray) -> tuple:
             ws[n_end:n_end + W_OUT])
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def write_output_row(state: np.ndarray, common: np.ndarray, Q: np.ndarray, i: int) -> None:
     """Q[i] ← write_output, without a row view (whose reference counting costs more
     than the arithmetic in a batch loop)."""
     Q[i, 0], Q[i, 1], Q[i, 2], Q[i, 3] = rotate_output(state, common)
 
 
-def make_kernels(step):
+def make_kernels(step, takes_velocity: bool = False):
     """Build the compiled single-sample and batch drivers around an estimator's step.
 
     ``step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt)``
-    takes scalars: array views would cost a reference-count round trip per sample.
+    takes scalars: array views would cost a reference-count round trip per sample. With
+    ``takes_velocity`` it also takes ``vx, vy, vz, v_age`` (internal frame, NaN when no
+    measurement) and the driver leaves the accelerometer as it is; otherwise the driver
+    removes the linear acceleration derived from the velocities (see module docstring).
 
     The step is inlined into the drivers (numba IR inlining): a call passing two arrays
     and twelve scalars per sample cost more than most filters' arithmetic. The drivers
@@ -285,7 +401,7 @@ def make_kernels(step):
 
     @njit(inline="always")
     def process(state, params, common, gx, gy, gz, ax, ay, az, mx, my, mz, has_mag, dt,
-                counters) -> int:
+                counters, ux, uy, uz, v_age) -> int:
         """One sample with the common checks; returns the F_* flags of this sample."""
         counters[C_SAMPLES] += 1
         initialised = F_INITIALISED if state[INIT] > 0.0 else 0
@@ -296,6 +412,10 @@ def make_kernels(step):
             counters[C_SKIPPED] += 1
             counters[C_BAD_DT] += 1
             return F_SKIPPED | initialised
+        state[RUN_T] += dt
+        vx, vy, vz = user_to_internal(common, ux, uy, uz)
+        if not (v_age >= 0.0 and v_age <= common[P_AID_TIMEOUT]):
+            vx, vy, vz = math.nan, math.nan, math.nan  # too old (or no age): no aiding
         flags = 0
         acc_ok = acc_usable(ax, ay, az, common[P_ACC_RANGE])
         if not acc_ok:
@@ -309,13 +429,21 @@ def make_kernels(step):
         glim = _SAT_FRACTION * common[P_GYR_RANGE]
         if abs(gx) >= glim or abs(gy) >= glim or abs(gz) >= glim:
             counters[C_GYR_SATURATED] += 1
+        if not takes_velocity:
+            track_velocity(state, common, vx, vy, vz, v_age)
         if not initialised:
             if not acc_ok:
                 return flags  # nothing to anchor the attitude to yet
             init_from_acc_mag(state, ax, ay, az, mx, my, mz, mag_ok)
             state[INIT] = 1.0
             return flags | F_INITIALISED
-        step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt)
+        if takes_velocity:
+            step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
+                 vx, vy, vz, v_age)
+        else:
+            if acc_ok:
+                ax, ay, az = remove_linear_acceleration(state, common, ax, ay, az)
+            step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt)
         if state[ACC_REJ] > 0.0:
             counters[C_ACC_REJECTED] += 1
             flags |= F_ACC_REJECTED
@@ -324,9 +452,9 @@ def make_kernels(step):
             flags |= F_MAG_REJECTED
         return flags | F_INITIALISED
 
-    def update_one(ws, g, a, m, dt) -> int:
+    def update_one(ws, g, a, m, dt, v, v_age) -> int:
         """One sample on a workspace (see make_workspace); -1 if a vector is not (3,)."""
-        if g.shape[0] != 3 or a.shape[0] != 3:
+        if g.shape[0] != 3 or a.shape[0] != 3 or v.shape[0] != 3:
             return -1
         s_end, p_end = int(ws[W_STATE_END]), int(ws[W_PARAMS_END])
         c_end, n_end = int(ws[W_COMMON_END]), int(ws[W_COUNTERS_END])
@@ -334,28 +462,33 @@ def make_kernels(step):
         counters = ws[c_end:n_end]
         if m is None:
             flags = process(state, params, common, g[0], g[1], g[2], a[0], a[1], a[2],
-                            0.0, 0.0, 0.0, False, dt, counters)
+                            0.0, 0.0, 0.0, False, dt, counters, v[0], v[1], v[2], v_age)
         else:
             if m.shape[0] != 3:
                 return -1
             flags = process(state, params, common, g[0], g[1], g[2], a[0], a[1], a[2],
-                            m[0], m[1], m[2], True, dt, counters)
+                            m[0], m[1], m[2], True, dt, counters, v[0], v[1], v[2], v_age)
         write_output(state, common, ws[n_end:n_end + W_OUT])
         return flags
 
     def run_batch(state, params, common, G, A, M, has_mag, dts, counters,
-                  Q, B, F) -> None:
+                  Q, B, F, V, V_AGE) -> None:
         single_dt = dts.shape[0] == 1
+        has_vel = V.shape[0] == G.shape[0]
+        single_age = V_AGE.shape[0] == 1
         for i in range(G.shape[0]):
             dt = dts[0] if single_dt else dts[i]
             j = i if has_mag else 0
+            k = i if has_vel else 0
+            age = V_AGE[0] if single_age else V_AGE[i]
             F[i] = process(state, params, common, G[i, 0], G[i, 1], G[i, 2],
                            A[i, 0], A[i, 1], A[i, 2], M[j, 0], M[j, 1], M[j, 2],
-                           has_mag, dt, counters)
+                           has_mag, dt, counters, V[k, 0], V[k, 1], V[k, 2], age)
             write_output_row(state, common, Q, i)
             B[i, 0], B[i, 1], B[i, 2] = state[B0], state[B0 + 1], state[B0 + 2]
 
-    return _cached_njit(update_one, step), _cached_njit(run_batch, step)
+    variant = f"takes_velocity={takes_velocity}"
+    return (_cached_njit(update_one, step, variant), _cached_njit(run_batch, step, variant))
 
 
 class _StepKeyedCache(FunctionCache):
@@ -365,10 +498,10 @@ class _StepKeyedCache(FunctionCache):
     pickles with a random per-process id, so the default key never matched and every
     process recompiled every estimator's drivers. This key uses the driver's bytecode
     plus the step's qualified name and the text of the file defining it instead (an
-    edit there recompiles; edits to this file are caught by numba's own file check).
+    edit there recompiles), and the package digest (see :func:`_package_digest`).
     """
 
-    def __init__(self, py_func, step) -> None:
+    def __init__(self, py_func, step, variant: str = "") -> None:
         super().__init__(py_func)
         fn = getattr(step, "py_func", step)
         try:
@@ -376,17 +509,19 @@ class _StepKeyedCache(FunctionCache):
         except (OSError, TypeError):
             source = fn.__code__.co_code
         self._step_digest = hashlib.sha256(
-            fn.__module__.encode() + fn.__qualname__.encode() + source).hexdigest()
+            fn.__module__.encode() + fn.__qualname__.encode() + variant.encode()
+            + source).hexdigest()
 
     def _index_key(self, sig, codegen):
         code = hashlib.sha256(self._py_func.__code__.co_code).hexdigest()
-        return (sig, codegen.magic_tuple(), (code, self._step_digest))
+        return (sig, codegen.magic_tuple(), (code, self._step_digest), PACKAGE_DIGEST)
 
 
-def _cached_njit(fn, step):
-    """njit(fn) with the step-keyed disk cache (compiled lazily)."""
+def _cached_njit(fn, step, variant: str = ""):
+    """njit(fn) with the step-keyed disk cache (compiled lazily); ``variant`` names
+    closure settings that change the compiled code without changing any source."""
     dispatcher = njit(fn)
-    dispatcher._cache = _StepKeyedCache(dispatcher.py_func, step)
+    dispatcher._cache = _StepKeyedCache(dispatcher.py_func, step, variant)
     return dispatcher
 
 

@@ -26,6 +26,7 @@ from . import _core
 from . import quat as Q
 
 G = 9.80665
+_NO_VELOCITY = np.full(3, np.nan)  # update()'s vel when none is given (never written)
 
 
 def param(default: float, doc: str) -> Any:
@@ -45,6 +46,8 @@ class CommonParams:
     declination: float = param(0.0, "magnetic declination [rad], east positive: the output "
                                     "heading is relative to true north (magnetic + "
                                     "declination) instead of magnetic north")
+    aid_timeout: float = param(0.5, "velocity aiding: longest gap [s] between two velocity "
+                                    "measurements (and longest age of one) that still aids")
 
 
 @dataclass(frozen=True)
@@ -122,7 +125,7 @@ class Estimator:
             self._state_size,
             np.ascontiguousarray(self._pack_params(self.params), dtype=float).ravel(),
             np.array([self.params.acc_range, self.params.gyr_range, self.params.max_dt,
-                      *self.output_rotation]))
+                      *self.output_rotation, self.params.aid_timeout]))
         (self._state, self._params_vec, self._common, self._counters,
          self._out) = _core.workspace_views(self._ws)
         self._q0 = None if q0 is None else np.array(q0, dtype=float)
@@ -173,6 +176,7 @@ class Estimator:
             self._q0 = np.array(q0, dtype=float)
         state = np.zeros(self._state_size)
         state[0] = 1.0
+        state[_core.AID_VT:_core.AID_VT + 3] = -math.inf  # no velocity measurement yet
         if self._q0 is not None:
             q = Q.normalize(self._q0)
             if q.shape != (4,) or not np.all(np.isfinite(q)):
@@ -211,25 +215,34 @@ class Estimator:
 
     # --- estimation --------------------------------------------------------------------
     def update(self, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None = None,
-               dt: float | None = None) -> np.ndarray:
+               dt: float | None = None, *, vel: np.ndarray | None = None,
+               vel_age: float = 0.0) -> np.ndarray:
         """Advance by one sample and return the attitude [w, x, y, z] (a new array).
 
         ``gyr`` rad/s, ``acc`` m/s^2 (specific force), ``mag`` any unit or None, ``dt``
         seconds since the previous sample (default ``1/rate_hz``). Bad samples are counted
         in ``counters``, never raised: a sensor stream must not crash the caller.
+
+        ``vel`` (optional aiding): the vehicle's velocity [m/s] in the output world frame
+        (NED or ENU, true north when ``declination`` is set), measured ``vel_age``
+        seconds before this sample; None or NaN components when no new measurement
+        arrived with this sample. Estimators that use the accelerometer as a gravity
+        reference then remove the vehicle's acceleration from it.
         """
         step_dt = self._dt if dt is None else dt
+        v = _NO_VELOCITY if vel is None else vel
         try:
             # Fast path: contiguous float64 (3,) arrays go straight to the kernel.
-            flags = self._kernel(self._ws, gyr, acc, mag, step_dt)
+            flags = self._kernel(self._ws, gyr, acc, mag, step_dt, v, vel_age)
         except TypeError:
             flags = -1
         if flags < 0:
-            flags = self._update_converted(gyr, acc, mag, step_dt)
+            flags = self._update_converted(gyr, acc, mag, step_dt, v, vel_age)
         self._last_flags = flags
         return self._out.copy()
 
-    def _update_converted(self, gyr: object, acc: object, mag: object, dt: object) -> int:
+    def _update_converted(self, gyr: object, acc: object, mag: object, dt: object,
+                          vel: object, vel_age: object) -> int:
         """update() for inputs the kernel does not take as they are: convert or raise."""
         g = np.ascontiguousarray(gyr, dtype=np.float64)
         a = np.ascontiguousarray(acc, dtype=np.float64)
@@ -240,18 +253,26 @@ class Estimator:
             m = np.ascontiguousarray(mag, dtype=np.float64)
             if m.shape != (3,):
                 raise ValueError(f"mag must have shape (3,), got {m.shape}")
+        v = np.ascontiguousarray(vel, dtype=np.float64)
+        if v.shape != (3,):
+            raise ValueError(f"vel must have shape (3,), got {v.shape}")
         try:
             step_dt = float(dt)  # type: ignore[arg-type]
+            age = float(vel_age)  # type: ignore[arg-type]
         except (TypeError, ValueError):
-            raise ValueError(f"dt must be a number of seconds, got {dt!r}") from None
-        return type(self)._update_one(self._ws, g, a, m, step_dt)
+            raise ValueError(f"dt and vel_age must be numbers of seconds, got {dt!r} and "
+                             f"{vel_age!r}") from None
+        return type(self)._update_one(self._ws, g, a, m, step_dt, v, age)
 
     def run(self, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None = None,
-            dt: float | np.ndarray | None = None) -> BatchResult:
+            dt: float | np.ndarray | None = None, *, vel: np.ndarray | None = None,
+            vel_age: float | np.ndarray | None = None) -> BatchResult:
         """Process (N, 3) arrays in a compiled loop, continuing from the current state.
 
         ``dt`` is a scalar, an (N,) array of per-sample steps, or None for ``1/rate_hz``.
-        Gives the same quaternions as calling ``update`` N times.
+        ``vel`` (N, 3) and ``vel_age`` (scalar or (N,), default 0) as in ``update``, NaN
+        rows where no velocity measurement arrives. Gives the same quaternions as calling
+        ``update`` N times.
         """
         G_ = np.ascontiguousarray(gyr, dtype=np.float64)
         A_ = np.ascontiguousarray(acc, dtype=np.float64)
@@ -265,19 +286,29 @@ class Estimator:
             if M_.shape != G_.shape:
                 raise ValueError(f"mag must be (N, 3) like gyr, got {M_.shape}")
             has_mag = True
-        if dt is None:
-            dts = np.array([1.0 / self.rate_hz])
+        dts = self._per_sample("dt", 1.0 / self.rate_hz if dt is None else dt, n)
+        if vel is None:
+            V_ = _NO_VELOCITY.reshape(1, 3)
         else:
-            dts = np.ascontiguousarray(np.atleast_1d(np.asarray(dt, dtype=np.float64)))
-            if dts.shape not in ((1,), (n,)):
-                raise ValueError(f"dt must be a scalar or shape ({n},), got {dts.shape}")
+            V_ = np.ascontiguousarray(vel, dtype=np.float64)
+            if V_.shape != G_.shape:
+                raise ValueError(f"vel must be (N, 3) like gyr, got {V_.shape}")
+        ages = self._per_sample("vel_age", 0.0 if vel_age is None else vel_age, n)
         q_out = np.empty((n, 4))
         b_out = np.empty((n, 3))
         f_out = np.zeros(n, dtype=np.uint8)
         if n:
             type(self)._run_batch(self._state, self._params_vec, self._common, G_, A_, M_,
-                                  has_mag, dts, self._counters, q_out, b_out, f_out)
+                                  has_mag, dts, self._counters, q_out, b_out, f_out, V_, ages)
             self._last_flags = int(f_out[-1])
         return BatchResult(q=q_out, bias=b_out, flags=f_out)
+
+    @staticmethod
+    def _per_sample(name: str, value: float | np.ndarray, n: int) -> np.ndarray:
+        """A scalar or (N,) input as a contiguous float64 array of shape (1,) or (N,)."""
+        arr = np.ascontiguousarray(np.atleast_1d(np.asarray(value, dtype=np.float64)))
+        if arr.shape not in ((1,), (n,)):
+            raise ValueError(f"{name} must be a scalar or shape ({n},), got {arr.shape}")
+        return arr
 
     _write_output = staticmethod(_core.write_output)

@@ -24,7 +24,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from . import _core
 from . import quat as Q
@@ -41,7 +40,7 @@ class DcmParams(CommonParams):
                               "first-order step R·(I + [ω×]dt) (both re-orthonormalised)")
 
 
-@njit(cache=True)
+@_core.kernel
 def _r_from_q(state: np.ndarray) -> None:
     w, x, y, z = state[0], state[1], state[2], state[3]
     r = R_START
@@ -56,7 +55,7 @@ def _r_from_q(state: np.ndarray) -> None:
     state[r + 8] = 1.0 - 2.0 * (x * x + y * y)
 
 
-@njit(cache=True)
+@_core.kernel
 def _rotate_r(state: np.ndarray, vx: float, vy: float, vz: float, exact: bool) -> None:
     """R ← R·ΔR for the rotation vector v = ω·dt (body frame)."""
     a2 = vx * vx + vy * vy + vz * vz
@@ -83,7 +82,7 @@ def _rotate_r(state: np.ndarray, vx: float, vy: float, vz: float, exact: bool) -
         state[k + 2] = r0 * d02 + r1 * d12 + r2 * d22
 
 
-@njit(cache=True)
+@_core.kernel
 def _orthonormalise(state: np.ndarray) -> None:
     """Unit columns x, y; Premerlani/Bizard error split; z = x × y; unit columns again.
 
@@ -111,7 +110,7 @@ def _orthonormalise(state: np.ndarray) -> None:
     state[r + 2], state[r + 5], state[r + 8] = zx / nz, zy / nz, zz / nz
 
 
-@njit(cache=True)
+@_core.kernel
 def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt) -> None:
     r = R_START
     if state[r] == 0.0 and state[r + 1] == 0.0 and state[r + 2] == 0.0:

@@ -1,98 +1,59 @@
-"""Strong estimator ("eskf"): error-state attitude with a Kalman gyro-bias filter,
-inertial-frame filtered inclination, heading-only magnetometer, acceleration and
-magnetic-disturbance rejection.
+"""Strong estimator ("eskf"): a multiplicative error-state Kalman filter with the
+vehicle's velocity as a state, so that linear acceleration is modelled, not guessed.
 
-The attitude is kept as a nominal strapdown part and a world-side error rotation,
-``q = q_c ⊗ q_g``; the measurements only ever act on the error ``q_c`` and the bias.
-Unlike a textbook ESKF the attitude error is not a Kalman state: it is corrected with
-fixed time constants, because accelerometer and magnetometer errors on real data are
-strongly coloured (linear acceleration, calibration errors that vary with attitude),
-which a white-noise measurement model does not describe. The ideas for the attitude
-part are those published for VQF (D. Laidig & T. Seel, Information Fusion 91, 2023),
-implemented here from the formulas; the bias filter is our own.
+Why velocity: an accelerometer measures specific force ``f = a − g``, never gravity
+alone. A filter that takes ``f`` for gravity is pulled toward "level" whenever the
+vehicle accelerates — for seconds at a time on a multirotor, whose accelerometer sees
+thrust. Integrating ``R·f + g`` gives the velocity instead, and a velocity is something
+we can say things about: it is measured (GPS, the autopilot's estimate), it stays small
+for a hand-held device, and a multirotor's rotor drag makes the accelerometer's
+horizontal axes read it directly. A tilt error ``δθ`` makes the integrated velocity
+drift at ``g × δθ``; every velocity statement therefore corrects the tilt, with the
+lag and weight the Kalman filter works out, and bounded accelerations (manoeuvres,
+vibration, taps) only ever move the velocity by a bounded amount.
 
-* **Strapdown** ``q_g ← q_g ⊗ exp((ω − b)·dt/2)`` gives the attitude relative to an
-  *almost inertial* frame I (it only drifts with the residual bias).
-* **Inclination.** The specific force is rotated into I, ``a_I = R(q_g)·a``, and
-  low-pass filtered there (second-order Butterworth, DC lag ``tau_acc``).
-  For the first ``acc_startup_time`` the filter is a running mean instead, so that
-  vibration on the very first sample cannot tilt the start for several tau_acc.
-  In an inertial frame linear acceleration is the derivative of velocity, which stays
-  bounded, so it averages out while gravity stays put: fast translations and vibration
-  barely tilt the estimate. A world-side correction ``q_c`` (attitude
-  ``q = q_c ⊗ q_g``) is rotated each sample by the smallest rotation that makes
-  ``R(q_c)·a_I,lp`` vertical.
-* **Heading.** The magnetometer, rotated to the world frame, gives a heading error
-  ``ψ``; ``q_c`` is turned about the world vertical by ``k·ψ`` with
-  ``k = 1 − exp(−dt/tau_mag)`` (faster for the first samples, averaging them). A rotation
-  about the vertical cannot change the inclination directly; the magnetometer reaches
-  it only through the bias component it teaches (below), measured < 0.01° in the tests
-  when disturbances are rejected (an accepted wrong field taught 0.4°).
-* **Gyro bias** (state[4:7]) is a 3-state Kalman filter in the body frame. At rest
-  (gyro and accelerometer steady for ``rest_time``) the low-passed gyro measures it
-  directly; in motion the correction rates of the inclination loop (world x, y) are
-  what a bias error makes the estimate drift by, ``ω_corr ≈ −LP(R(q))·(b − b̂)``, so
-  they are Kalman innovations whose measurement rows are the rows of R(q) passed
-  through the loop's own low-pass (its lag). The heading loop's correction rate about
-  the world vertical is a third innovation (noise ``bias_sigma_mag``), row z of R(q)
-  through the heading loop's first-order lag: without it a bias along the vertical is
-  learned only at rest, and in motion leaves a heading error ≈ b·tau_mag (12° per
-  °/s). It is used only for fields checked against a learned reference and not
-  flagged as disturbed. The loops answer a change of b̂ with the same lag, so the
-  rows times b̂, low-passed alike, are added back: the measurement is then
-  ``LP(R)·b``, and b̂ does not overshoot. Bias steps (an MPU6050 offset can jump by
-  °/s): when an innovation averaged over ``bias_step_tau`` exceeds
-  ``bias_step_nsigma`` predicted sigmas, P grows along that row (at most to the initial
-  variance), and for ``bias_step_hold`` the filter *follows* the step: the bias random
-  walk is raised to ``bias_step_rw`` (P up to ``bias_max``²) and tau_acc, tau_mag are
-  divided by ``bias_step_speedup``, so the attitude error the step built up is removed
-  as the bias is learned. Measured on the emulator's ``flight`` (5 °/s steps on each
-  body axis, 2 seeds): peak error 10–17° (was 15–27°), bias within 1 °/s after 4–8 s,
-  error back under 3° after 5–14 s for most steps (was: not within 25 s). Not solved:
-  with steps 11 s apart (seed 5: z at 25 s, x at 36 s) the error stays 5–23° from 27
-  to 44 s (13–32° without step following), and a pitch-axis step is first seen by the
-  heading channel — a tilt error leaks into the heading through the 65° dip — which
-  blames the vertical bias (b̂z 5 °/s off for a while); a joint attitude-error + bias
-  filter would separate them. Detection
-  needs ~4 s (3 sigmas of innovations that are averaged over 1 s and modelled noisy
-  enough for BROAD's fast motions); detecting sooner made false detections on
-  BROAD's fast combined trial (2.8 sigmas: 3.8 -> 8° there). ``bias_max`` is 20 °/s, the
-  MPU6050's zero-rate offset range. Rest is judged on pre-filtered gyro/accelerometer
-  (``rest_prefilter_tau``, so motor vibration does not hide rest) and, once the bias has
-  been measured at rest, needs the low-passed gyro within ``rest_bias_th`` of b̂ (a slow
-  steady turn is not bias); before that any offset within ``bias_max`` is accepted — an
-  uncalibrated MPU6050 at 2 °/s otherwise never found rest.
-  Noise is given as densities, so the same numbers work from 100 Hz to 8 kHz.
-* **Acceleration rejection** (state[ACC_REJ]): ordinary manoeuvres are not rejected
-  but averaged out by the inertial-frame low-pass (gating them would bias that average:
-  on BROAD any norm gate below ~4 g made the fast-translation trial worse). Shocks and
-  impacts, ``|‖a‖ − g| > acc_gate``, are kept out of the filter and flagged. A
-  rejection lasting ``acc_reject_timeout`` is lifted, so a sensor that reads wrong
-  for good cannot freeze the inclination forever.
-* **Magnetic disturbance rejection** (state[MAG_REJ]): the field norm and dip angle
-  (low-passed) are compared with references learned while undisturbed; outside
-  ``mag_norm_th`` / ``mag_dip_th`` the heading correction pauses. A new field that stays
-  consistent for ``mag_new_time`` (``mag_new_first_time`` before any reference exists)
-  becomes the reference. Before the first reference, a field consistent for
-  ``mag_provisional_time`` is a provisional reference, so a magnet near the vehicle in
-  the first seconds is rejected too (it tilted the heading by 20–29° on the emulator).
+**Nominal state** (every sample): attitude ``q`` (body → magnetic NED), gyro bias ``b``,
+velocity ``v`` (NED), drag coefficient ``μ``. Strapdown ``q ← q ⊗ exp((ω − b)·dt)``,
+``v ← v + (R·f + g)·dt``.
 
-Defaults and how they were chosen (one set for everything, 100 Hz-8 kHz: all gains are
-time constants in seconds or noise densities). ``tau_acc`` 3 s, the rest-detection
-thresholds and the 10 % / 10° / 20 s magnetic thresholds are VQF's published values,
-not tuned. Tuned on the 9 BROAD trials with a small grid, each checked also on the same
-trials cut to start in motion (no initial rest, so bias must be learned in motion):
-``tau_mag`` from {9, 12, 15, 20, 30} s: 12 s (longer wins with the initial rest, 12 s
-is best without it); ``bias_sigma_motion`` from {0.1, 0.25, 0.5, 1, 2, ∞} °/s: 1 °/s;
-``acc_gate`` from {2, 3, 4, 5, 6 g, ∞}: 5 g (lower gates bias the inertial average).
-Results (mean over the trials, total/heading/inclination): 2.28/2.13/0.76° against
-vqf's 3.25/3.13/0.76° (online, defaults); at 95 Hz (every third sample) 2.31/2.15/0.75°.
-The magnetometer -> bias update, step inflation, rest pre-filter and start-up mean were
-added later for the HIL emulator's faults (not tuned on BROAD; ``bias_sigma_mag``
-0.5 °/s, ``bias_step_tau`` 1 s, 3 sigmas chosen, not searched): BROAD
-2.30/2.14/0.76° with them.
+**Error state** (Kalman, every ``update_period`` — the filter's cost does not grow with
+the IMU rate): ``x = [δθ (world frame, 3), δb (3), δv (3), δμ]``, true attitude
+``exp(δθ) ⊗ q``. Over a period ``T`` with the specific force integrated to ``ΔV``
+(world frame): ``δθ' = δθ − R·T·δb``, ``δv' = δv − [ΔV]×·δθ``; process noise from the
+gyro (angle random walk, covering its noise and unmodelled errors), the bias random
+walk and a velocity random walk.
 
-Every sample costs a few hundred flops and no allocation: the step works on scalars.
+**Measurements** (noise given as densities, so the numbers hold from 100 Hz to 8 kHz):
+
+* *Velocity aiding* (``vel=`` on ``update``/``run``): each finite component is a
+  measurement of ``v`` at ``age`` seconds before the sample, predicted as
+  ``v − age·(R·f + g)``; chi-square gated, and the velocity is re-anchored to the
+  measurement after ``velocity_reset_time`` of rejections (a GPS that jumped).
+* *Rotor drag* (multirotors, ``drag`` > 0): a multirotor's horizontal specific force is
+  rotor drag, ``f_xy = −μ·(Rᵀv)_xy`` (the thrust is along body z). This makes tilt and
+  velocity observable without any aiding. ``μ`` (1/s) differs per vehicle, so it is a
+  state, started at ``drag`` ± ``drag_sigma_init``. The vertical velocity gets a weak
+  zero prior (``vertical_velocity_prior``) so that it cannot wander into ``Rᵀv``.
+* *Bounded velocity* (otherwise: hand-held, or an unknown vehicle): ``v ≈ 0`` with
+  density ``velocity_prior``; the velocity random walk lets it wander slowly, so a steady
+  motion is not mistaken for a tilt. Chi-square gated: when the motion stops looking
+  bounded (a vehicle that flies away) the pseudo-measurement is rejected and the gyro
+  carries the attitude; after ``velocity_reset_time`` of rejections the velocity is
+  re-anchored at zero, which changes no attitude.
+* *Rest* (VQF's rest detector and thresholds: gyro and accelerometer within
+  ``rest_gyr_th``/``rest_acc_th`` of their low-pass for ``rest_time``): the low-passed
+  gyro measures the bias, and the velocity is zero.
+* *Magnetometer, heading only*: the heading of the field rotated into the world frame
+  is a measurement of ``δθ_z``; its gain on ``δθ_x, δθ_y`` is zeroed (Joseph form keeps
+  ``P`` consistent), so a disturbed field cannot tilt the estimate, while the bias
+  along the vertical still learns from it. Chi-square gated, and paused while the
+  field's norm or dip departs from the reference learned while undisturbed (VQF's
+  10 % / 10°; a new field consistent for ``mag_new_time`` becomes the reference).
+
+Defaults: rest thresholds and magnetic-disturbance thresholds are VQF's published
+values; the noise densities were chosen by leave-one-trial-out on the BROAD trials and
+checked on the PX4 SIH flights and the emulator (``benchmarks/accuracy.py`` prints the
+evidence; docs/accuracy.md has the numbers).
 """
 
 from __future__ import annotations
@@ -101,685 +62,635 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from . import _core
 from .base import CommonParams, Estimator, G, param
 from .registry import register
 
 _DEG = math.pi / 180.0
+# Chi-square 99.9 % points for 1, 2 and 3 degrees of freedom: a measurement further from
+# its prediction than this, in its own predicted uncertainty, is an outlier.
+_GATE = (0.0, 10.828, 13.816, 16.266)
+_NX = 10  # error state: δθ(3), δb(3), δv(3), δμ
+_TH, _BI, _VE, _MU = 0, 3, 6, 9
 
 
 @dataclass(frozen=True)
 class EskfParams(CommonParams):
-    tau_acc: float = param(3.0, "inclination time constant [s]: total lag of the "
-                                "inertial-frame accelerometer low-pass")
-    tau_mag: float = param(12.0, "heading time constant [s] of the magnetometer correction")
-    gravity: float = param(G, "expected specific-force norm at rest [m/s^2]")
-    acc_gate: float = param(5.0 * G, "a sample with |‖a‖ − gravity| above this [m/s^2] "
-                                     "is rejected: shocks and impacts (hand-held or flight "
-                                     "manoeuvres stay below; they average out in frame I)")
-    acc_reject_timeout: float = param(5.0, "longest continuous acceleration rejection [s]; "
-                                           "then samples are used again")
-    rest_gyr_th: float = param(2.0 * _DEG, "rest: gyro deviation from its low-pass below "
-                                           "this [rad/s]")
-    rest_acc_th: float = param(0.5, "rest: accelerometer deviation from its low-pass "
-                                    "below this [m/s^2]")
-    rest_time: float = param(1.5, "rest: conditions hold this long [s] before the gyro "
-                                  "is taken as a bias measurement")
-    rest_tau: float = param(0.5, "time constant [s] of the rest-detection low-passes")
-    bias_sigma_init: float = param(0.5 * _DEG, "initial gyro-bias standard deviation [rad/s]")
-    bias_rw: float = param(0.003 * _DEG, "gyro-bias random walk [rad/s/sqrt(s)]")
-    bias_sigma_rest: float = param(0.03 * _DEG, "rest bias measurement noise [rad/s] over "
-                                                "1 s of rest")
-    bias_sigma_motion: float = param(1.0 * _DEG, "motion bias measurement noise [rad/s] "
-                                                 "over 1 s of motion (inclination "
-                                                 "correction rates)")
-    bias_sigma_mag: float = param(0.5 * _DEG, "heading bias measurement noise [rad/s] "
-                                              "over 1 s (heading correction rate, "
-                                              "world-vertical bias component only)")
-    bias_max: float = param(20.0 * _DEG, "bias estimate clip per axis [rad/s]: the "
-                                         "MPU6050's uncalibrated zero-rate offset range")
-    rest_bias_th: float = param(2.0 * _DEG, "rest: low-passed gyro within this of the "
-                                            "bias estimate, per axis [rad/s] (a slow "
-                                            "steady turn is not taken for bias)")
-    rest_prefilter_tau: float = param(0.05, "rest: time constant [s] of the pre-filter "
-                                            "whose deviation is checked (attenuates "
-                                            "vibration at 70 Hz by 20x)")
-    bias_step_tau: float = param(1.0, "bias-step detection: averaging time [s] of the "
-                                      "bias innovations")
-    bias_step_nsigma: float = param(3.0, "bias-step detection: averaged innovation beyond "
-                                         "this many predicted sigmas raises the bias "
-                                         "covariance")
-    bias_step_hold: float = param(5.0, "after a detected bias step the bias random walk is "
-                                       "raised to bias_step_rw for this long [s], so the "
-                                       "filter keeps following until it has caught up")
-    bias_step_rw: float = param(1.0 * _DEG, "bias random walk while following a step "
-                                            "[rad/s/sqrt(s)]")
-    bias_step_speedup: float = param(4.0, "while following a step, tau_acc and tau_mag are "
-                                          "divided by this, so the attitude error the step "
-                                          "built up is removed as fast as the bias is learned")
-    rest_mag_th: float = param(0.5 * _DEG, "rest: direction deviation of the magnetometer "
-                                           "from its low-pass below this [rad]; until the "
-                                           "first rest this is what tells a steady turn "
-                                           "about the vertical from a large gyro offset")
+    update_period: float = param(0.01, "Kalman update period [s]: samples in between are "
+                                       "integrated, so the filter's cost and behaviour do "
+                                       "not depend on the IMU rate")
+    gravity: float = param(G, "gravity [m/s^2]")
+    gyro_noise: float = param(0.005, "attitude random walk [rad/sqrt(s)]: gyro noise plus "
+                                     "its unmodelled errors (scale, misalignment)")
+    bias_rw: float = param(1e-4, "gyro-bias random walk [rad/s/sqrt(s)]")
+    bias_init: float = param(0.5 * _DEG, "initial gyro-bias standard deviation [rad/s]")
+    bias_max: float = param(20.0 * _DEG, "bias estimate clip per axis [rad/s] (the "
+                                         "MPU6050's zero-rate offset range)")
+    tilt_init: float = param(5.0 * _DEG, "initial tilt standard deviation [rad]")
+    heading_init: float = param(10.0 * _DEG, "initial heading standard deviation [rad]")
+    velocity_rw: float = param(0.05, "velocity random walk [m/s/sqrt(s)]: how fast the "
+                                     "velocity may drift from what the accelerometer says "
+                                     "(accelerometer noise, scale errors, lever arm)")
+    velocity_prior: float = param(0.1, "bounded-velocity pseudo-measurement v ≈ 0, noise "
+                                       "density [m/s·sqrt(s)] (no aiding, no drag model)")
+    velocity_reset_time: float = param(3.0, "velocity re-anchored after this long [s] of "
+                                            "rejected velocity information")
+    vel_aid_noise: float = param(0.1, "velocity aiding measurement noise [m/s]")
+    drag: float = param(0.0, "multirotor rotor-drag model: initial drag coefficient "
+                             "μ [1/s] (f_xy = −μ·v_body,xy); 0 = not a multirotor")
+    drag_sigma_init: float = param(0.5, "initial standard deviation of μ [1/s]")
+    drag_noise: float = param(0.3, "drag measurement noise density [m/s^2·sqrt(s)]")
+    vertical_velocity_prior: float = param(1.0, "multirotor: vertical velocity ≈ 0 "
+                                                "pseudo-measurement density [m/s·sqrt(s)]")
+    mag_noise: float = param(0.15, "magnetometer heading noise density [rad·sqrt(s)]")
     mag_norm_th: float = param(0.1, "magnetic disturbance: relative field-norm deviation")
     mag_dip_th: float = param(10.0 * _DEG, "magnetic disturbance: dip-angle deviation [rad]")
-    mag_current_tau: float = param(0.05, "low-pass [s] of the field norm/dip being checked")
-    mag_ref_tau: float = param(20.0, "time constant [s] with which undisturbed field "
-                                     "norm/dip refine the reference")
+    mag_ref_time: float = param(5.0, "a field consistent this long [s] becomes the first "
+                                     "reference")
     mag_new_time: float = param(20.0, "a disturbed but consistent field becomes the new "
                                       "reference after this long [s]")
-    mag_new_first_time: float = param(5.0, "consistent field time [s] before the first "
-                                           "reference is set (heading is corrected meanwhile)")
-    mag_provisional_time: float = param(0.5, "before the first reference: a field consistent "
-                                             "this long [s] is a provisional one, and "
-                                             "readings far from it are rejected as disturbed")
-    acc_startup_time: float = param(0.5, "first seconds: the inertial low-pass is a running "
-                                         "mean (vibration on the first sample must not "
-                                         "tilt the start)")
-    mag_startup_time: float = param(3.0, "first seconds of magnetometer use average "
-                                         "heading faster than tau_mag")
+    mag_ref_tau: float = param(20.0, "time constant [s] with which undisturbed field "
+                                     "norm/dip refine the reference")
+    rest_gyr_th: float = param(2.0 * _DEG, "rest: gyro deviation from its low-pass below "
+                                           "this [rad/s]")
+    rest_acc_th: float = param(0.5, "rest: accelerometer deviation from its low-pass below "
+                                    "this [m/s^2]")
+    rest_time: float = param(1.5, "rest: conditions hold this long [s]")
+    rest_tau: float = param(0.5, "time constant [s] of the rest-detection low-passes")
+    rest_noise: float = param(0.03 * _DEG, "rest: gyro-bias measurement noise density "
+                                           "[rad/s·sqrt(s)]")
+    rest_velocity_noise: float = param(0.01, "rest: zero-velocity measurement noise "
+                                             "density [m/s·sqrt(s)]")
 
 
-# --- parameter vector layout ------------------------------------------------------
-(_P_TAU_ACC, _P_TAU_MAG, _P_GRAV, _P_ACC_GATE, _P_ACC_TIMEOUT,
- _P_REST_GYR, _P_REST_ACC, _P_REST_TIME, _P_REST_TAU, _P_B_INIT, _P_B_RW, _P_B_REST,
- _P_B_MOTION, _P_B_MAX, _P_MAG_NORM, _P_MAG_DIP, _P_MAG_CUR_TAU, _P_MAG_REF_TAU,
- _P_MAG_NEW, _P_MAG_NEW_FIRST, _P_MAG_STARTUP, _P_B_MAG, _P_REST_BIAS, _P_REST_PRE_TAU,
- _P_STEP_TAU, _P_STEP_NSIG,
- _P_ACC_STARTUP, _P_STEP_HOLD, _P_STEP_RW, _P_MAG_PROVISIONAL,
- _P_STEP_SPEEDUP, _P_REST_MAG) = range(32)
 _PARAM_FIELDS = (
-    "tau_acc", "tau_mag", "gravity", "acc_gate", "acc_reject_timeout",
-    "rest_gyr_th", "rest_acc_th", "rest_time", "rest_tau", "bias_sigma_init", "bias_rw",
-    "bias_sigma_rest", "bias_sigma_motion", "bias_max", "mag_norm_th", "mag_dip_th",
-    "mag_current_tau", "mag_ref_tau", "mag_new_time", "mag_new_first_time",
-    "mag_startup_time", "bias_sigma_mag", "rest_bias_th",
-    "rest_prefilter_tau", "bias_step_tau", "bias_step_nsigma",
-    "acc_startup_time", "bias_step_hold", "bias_step_rw", "mag_provisional_time",
-    "bias_step_speedup", "rest_mag_th",
+    "update_period", "gravity", "gyro_noise", "bias_rw", "bias_init", "bias_max",
+    "tilt_init", "heading_init", "velocity_rw", "velocity_prior", "velocity_reset_time",
+    "vel_aid_noise", "drag", "drag_sigma_init", "drag_noise", "vertical_velocity_prior",
+    "mag_noise", "mag_norm_th", "mag_dip_th", "mag_ref_time", "mag_new_time",
+    "mag_ref_tau", "rest_gyr_th", "rest_acc_th", "rest_time", "rest_tau", "rest_noise",
+    "rest_velocity_noise", "aid_timeout",
 )
+(_P_PERIOD, _P_GRAV, _P_GYR_N, _P_B_RW, _P_B_INIT, _P_B_MAX, _P_TILT0, _P_HEAD0,
+ _P_V_RW, _P_V_PRIOR, _P_V_RESET, _P_AID_N, _P_DRAG, _P_DRAG0, _P_DRAG_N, _P_VZ_PRIOR,
+ _P_MAG_N, _P_MAG_NORM, _P_MAG_DIP, _P_MAG_REF_T, _P_MAG_NEW_T, _P_MAG_REF_TAU,
+ _P_REST_GYR, _P_REST_ACC, _P_REST_T, _P_REST_TAU, _P_REST_N,
+ _P_REST_V_N, _P_AID_TIMEOUT) = range(len(_PARAM_FIELDS))
 
-# --- private state layout -----------------------------------------------------------
+# --- private state layout -------------------------------------------------------------
 _S = _core.PRIVATE
-_QG = _S  # 4: strapdown attitude body -> almost-inertial frame I
-_QC = _S + 4  # 4: correction I -> world (NED); output q = q_c ⊗ q_g
-_ALP1 = _S + 8  # 3: Butterworth "velocity" states of the a_I low-pass
-_ALP2 = _S + 11  # 3: its output, the filtered inertial specific force
-_GLP = _S + 14  # 3: gyro low-pass (rest detection, rest bias measurement)
-_RLP = _S + 17  # 3: accelerometer low-pass, body frame (rest detection)
-_REST_T = _S + 20  # time the rest conditions have held [s]
-_PB = _S + 21  # 9: bias covariance, row-major 3x3
-_MN_CUR, _MD_CUR = _S + 30, _S + 31  # low-passed field norm and dip
-_MN_REF, _MD_REF = _S + 32, _S + 33  # learned reference norm and dip
-_MN_CAND, _MD_CAND = _S + 34, _S + 35  # candidate new reference
-_CAND_T = _S + 36  # how long the candidate has been consistent [s]
-_REF_OK = _S + 37  # 1.0 once a reference exists, 0.5 while a provisional one is used
-_MAG_T = _S + 38  # time of magnetometer use [s] (start-up averaging)
-_ACC_REJ_T = _S + 39  # continuous acceleration-rejection time [s]
-_READY = _S + 40  # 1.0 once the private state is set up from the first attitude
-_AT_REST = _S + 41  # 1.0 while at rest (diagnostic)
-_LP_OK = _S + 42  # 1.0 once the inertial low-pass holds a sample
-_HV = _S + 43  # 6: Butterworth velocity states of the low-passed R(q) rows x, y
-_HP = _S + 49  # 6: the low-passed rows x, y of R(q) (bias measurement model)
-_RUN_T = _S + 55  # time since start [s]
-# Filter coefficients for the last dt (recomputed only when dt changes: saves exp()s).
-_DT_LAST = _S + 56
-_K_REST, _K_MAG_CUR, _K_MAG_REF, _K_MAG = _S + 57, _S + 58, _S + 59, _S + 60
-_BW_OM2H, _BW_DMP, _BW_H = _S + 61, _S + 62, _S + 63
-_HZ = _S + 64  # 3: row z of R(q) low-passed like the heading loop (bias model)
-_MAG_BIAS_OK = _S + 67  # 1.0 when this sample's heading correction may teach the bias
-_MAG_RZ = _S + 68  # this sample's heading correction about the world vertical [rad]
-_GPF = _S + 69  # 3: gyro pre-filter (rest detection ignores vibration)
-_APF = _S + 72  # 3: accelerometer pre-filter
-_K_PRE = _S + 75
-_STEP_M = _S + 76  # 3: averaged innovations of the x, y, heading bias channels
-_K_STEP = _S + 79
-# The loops answer a change of b̂ with their own lag too: the rows times b̂, low-passed
-# alike, are added back to the correction rates, so the bias measurement stays LP(R)·b.
-_XB = _S + 80  # 4: Butterworth velocity/output of row x · b̂, then of row y · b̂
-_ZB = _S + 84  # 1: first-order low-pass of row z · b̂
-_REST_SEEN = _S + 85  # 1.0 once the bias has been measured at rest
-_STEP_T = _S + 86  # time left [s] of raised bias random walk after a detected step
-_COEF_FAST = _S + 87  # 1.0 when the coefficients below are the faster step-following ones
-_MLP = _S + 88  # 3: magnetometer low-pass, body frame (rest detection)
-_MPF = _S + 91  # 3: magnetometer pre-filter
-_MAG_STEADY = _S + 94  # 1.0 if the last usable magnetometer reading was steady
-_STATE_SIZE = _S + 95
+_V = _S  # 3: velocity, magnetic NED [m/s]
+_MUS = _S + 3  # drag coefficient μ [1/s]
+_P = _S + 4  # 100: covariance of the error state, row-major 10×10
+_ACC_T = _S + 104  # time integrated since the last Kalman update [s]
+_DV = _S + 105  # 3: ∫R·f dt over that time (world)
+_FB = _S + 108  # 3: ∫f dt (body), for the drag measurement
+_GLP = _S + 111  # 3: gyro low-pass (rest detection; the bias it measures)
+_ALP = _S + 114  # 3: accelerometer low-pass (rest detection)
+_REST_T = _S + 117  # how long rest conditions have held [s]
+_LP_OK = _S + 118  # 1 once the rest low-passes are seeded
+_MN_REF, _MD_REF, _REF_OK = _S + 119, _S + 120, _S + 121  # field norm/dip reference
+_MN_C, _MD_C, _CAND_T = _S + 122, _S + 123, _S + 124  # candidate field, how long held
+_V_REJ_T = _S + 125  # velocity information rejected for this long [s]
+_AID_T = _S + 126  # RUN_T of the last velocity aiding measurement (-inf: none)
+_PEND = _S + 127  # 3: velocity aiding measurement waiting for the next update (NaN: none)
+_PEND_AGE = _S + 130  # its age at the update [s]
+_MAG = _S + 131  # 3: last usable magnetometer sample of the period
+_MAG_OK = _S + 134  # 1 if _MAG holds one
+_H = _S + 135  # 30: scratch, measurement rows (3 × 10)
+_PHT = _S + 165  # 30: scratch, P·Hᵀ (10 × 3)
+_K = _S + 195  # 30: scratch, gain (10 × 3)
+_X = _S + 225  # 10: scratch, error-state correction
+_ACC_N = _S + 235  # usable accelerometer samples in the period
+_STATE_SIZE = _S + 236
 
 
-@njit(cache=True, inline="always")
-def _qmul_into(state, dst, aw, ax, ay, az, bw, bx, by, bz) -> None:
-    """state[dst:dst+4] ← a ⊗ b."""
-    state[dst] = aw * bw - ax * bx - ay * by - az * bz
-    state[dst + 1] = aw * bx + ax * bw + ay * bz - az * by
-    state[dst + 2] = aw * by - ax * bz + ay * bw + az * bx
-    state[dst + 3] = aw * bz + ax * by - ay * bx + az * bw
+@_core.kernel(inline="always")
+def _pi(i: int, j: int) -> int:
+    return _P + i * _NX + j
 
 
-@njit(cache=True, inline="always")
-def _rotate(state, i, vx, vy, vz) -> tuple:
-    """R(q)·v for the quaternion at state[i:i+4]."""
-    w, x, y, z = state[i], state[i + 1], state[i + 2], state[i + 3]
-    return (
-        (1 - 2 * (y * y + z * z)) * vx + 2 * (x * y - w * z) * vy + 2 * (x * z + w * y) * vz,
-        2 * (x * y + w * z) * vx + (1 - 2 * (x * x + z * z)) * vy + 2 * (y * z - w * x) * vz,
-        2 * (x * z - w * y) * vx + 2 * (y * z + w * x) * vy + (1 - 2 * (x * x + y * y)) * vz,
-    )
+@_core.kernel
+def _init_covariance(state: np.ndarray, params: np.ndarray) -> None:
+    for k in range(_NX * _NX):
+        state[_P + k] = 0.0
+    for i in range(3):
+        state[_pi(_TH + i, _TH + i)] = params[_P_TILT0] ** 2
+        state[_pi(_BI + i, _BI + i)] = params[_P_B_INIT] ** 2
+        state[_pi(_VE + i, _VE + i)] = params[_P_V_PRIOR] ** 2
+    state[_pi(_TH + 2, _TH + 2)] = params[_P_HEAD0] ** 2
+    if params[_P_DRAG] > 0.0:
+        state[_pi(_MU, _MU)] = params[_P_DRAG0] ** 2
 
 
-@njit(cache=True, inline="always")
-def _normalize4(state, i) -> None:
-    n = math.sqrt(state[i] ** 2 + state[i + 1] ** 2 + state[i + 2] ** 2 + state[i + 3] ** 2)
-    if n > 1e-12 and math.isfinite(n):
-        inv = 1.0 / n
-        for j in range(4):
-            state[i + j] *= inv
-    else:
-        state[i], state[i + 1], state[i + 2], state[i + 3] = 1.0, 0.0, 0.0, 0.0
+@_core.kernel(inline="always")
+def _rotation(state: np.ndarray) -> tuple:
+    """R(q) row-major for the attitude in state[0:4]."""
+    w, x, y, z = state[0], state[1], state[2], state[3]
+    return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
 
 
-@njit(cache=True, inline="always")
-def _strapdown(state, wx: float, wy: float, wz: float, dt: float) -> None:
-    """q_g ← q_g ⊗ exp(ω·dt/2), exact for a constant rate over the step.
+@_core.kernel
+def _predict_covariance(state: np.ndarray, params: np.ndarray, T: float) -> None:
+    """P ← F·P·Fᵀ + Q over one update period, F = I + [δθ ← −R·T·δb, δv ← −[ΔV]×·δθ].
 
-    Per-sample angles are small (400 °/s at 285 Hz: 0.025 rad), where the Taylor series
-    of cos(a/2) and sin(a/2)/a to a⁶ is exact to < 1e-16 and cheaper than sin/cos.
-    """
-    a2 = (wx * wx + wy * wy + wz * wz) * dt * dt
-    if a2 < 0.0025:  # angle < 0.05 rad: next terms a⁸/10321920 < 4e-18
-        c = 1.0 - a2 / 8.0 + a2 * a2 / 384.0 - a2 * a2 * a2 / 46080.0
-        k = (0.5 - a2 / 48.0 + a2 * a2 / 3840.0 - a2 * a2 * a2 / 645120.0) * dt
-    else:
-        angle = math.sqrt(a2)
-        c = math.cos(0.5 * angle)
-        k = math.sin(0.5 * angle) / angle * dt
-    dx, dy, dz = wx * k, wy * k, wz * k
-    w, x, y, z = state[_QG], state[_QG + 1], state[_QG + 2], state[_QG + 3]
-    _qmul_into(state, _QG, w, x, y, z, c, dx, dy, dz)
-    _normalize4(state, _QG)
+    In place: the velocity rows/columns are updated first because they read the attitude
+    rows/columns as they were; the attitude ones then read the (unchanged) bias ones."""
+    r = _rotation(state)
+    dvx, dvy, dvz = state[_DV], state[_DV + 1], state[_DV + 2]
+    # [ΔV]× rows
+    s0 = (0.0, -dvz, dvy)
+    s1 = (dvz, 0.0, -dvx)
+    s2 = (-dvy, dvx, 0.0)
+    for c in range(_NX):  # rows: F·P
+        t0, t1, t2 = state[_pi(0, c)], state[_pi(1, c)], state[_pi(2, c)]
+        state[_pi(_VE, c)] -= s0[0] * t0 + s0[1] * t1 + s0[2] * t2
+        state[_pi(_VE + 1, c)] -= s1[0] * t0 + s1[1] * t1 + s1[2] * t2
+        state[_pi(_VE + 2, c)] -= s2[0] * t0 + s2[1] * t1 + s2[2] * t2
+        b0, b1, b2 = state[_pi(3, c)], state[_pi(4, c)], state[_pi(5, c)]
+        state[_pi(0, c)] -= T * (r[0] * b0 + r[1] * b1 + r[2] * b2)
+        state[_pi(1, c)] -= T * (r[3] * b0 + r[4] * b1 + r[5] * b2)
+        state[_pi(2, c)] -= T * (r[6] * b0 + r[7] * b1 + r[8] * b2)
+    for i in range(_NX):  # columns: (F·P)·Fᵀ
+        t0, t1, t2 = state[_pi(i, 0)], state[_pi(i, 1)], state[_pi(i, 2)]
+        state[_pi(i, _VE)] -= s0[0] * t0 + s0[1] * t1 + s0[2] * t2
+        state[_pi(i, _VE + 1)] -= s1[0] * t0 + s1[1] * t1 + s1[2] * t2
+        state[_pi(i, _VE + 2)] -= s2[0] * t0 + s2[1] * t1 + s2[2] * t2
+        b0, b1, b2 = state[_pi(i, 3)], state[_pi(i, 4)], state[_pi(i, 5)]
+        state[_pi(i, 0)] -= T * (r[0] * b0 + r[1] * b1 + r[2] * b2)
+        state[_pi(i, 1)] -= T * (r[3] * b0 + r[4] * b1 + r[5] * b2)
+        state[_pi(i, 2)] -= T * (r[6] * b0 + r[7] * b1 + r[8] * b2)
+    qa = params[_P_GYR_N] ** 2 * T
+    qb = params[_P_B_RW] ** 2 * T
+    qv = params[_P_V_RW] ** 2 * T
+    for i in range(3):
+        state[_pi(_TH + i, _TH + i)] += qa
+        state[_pi(_BI + i, _BI + i)] += qb
+        state[_pi(_VE + i, _VE + i)] += qv
 
 
-@njit(cache=True, inline="always")
-def _left_rotate_qc(state, rx, ry, rz) -> None:
-    """q_c ← exp(r/2) ⊗ q_c for a world-frame rotation vector r [rad]."""
+@_core.kernel
+def _inject(state: np.ndarray, params: np.ndarray) -> None:
+    """Fold the error-state correction in state[_X:] into the nominal state."""
+    x = _X
+    rx, ry, rz = state[x], state[x + 1], state[x + 2]
     angle = math.sqrt(rx * rx + ry * ry + rz * rz)
-    if angle < 1e-12:
-        return
-    if angle < 1e-3:  # per-sample corrections are tiny: Taylor terms to < 1e-15
-        a2 = angle * angle
-        s, c = 0.5 - a2 / 48.0, 1.0 - a2 / 8.0
-    else:
-        s, c = math.sin(0.5 * angle) / angle, math.cos(0.5 * angle)
-    cw, cx, cy, cz = c, rx * s, ry * s, rz * s
-    w, x, y, z = state[_QC], state[_QC + 1], state[_QC + 2], state[_QC + 3]
-    _qmul_into(state, _QC, cw, cx, cy, cz, w, x, y, z)
-    _normalize4(state, _QC)
-
-
-@njit(cache=True, inline="always")
-def _butter_coeffs(tau: float, dt: float) -> tuple:
-    """Second-order Butterworth low-pass (ζ = 1/√2, DC lag tau) as a mass-spring-damper,
-    integrated by semi-implicit Euler: returns (ω²h, 1 − 2ζωh, h); ω·h ≤ 0.5 keeps it
-    stable even for dt ≫ tau."""
-    om = math.sqrt(2.0) / tau
-    h = min(dt, 0.5 / om)
-    return om * om * h, 1.0 - math.sqrt(2.0) * om * h, h
-
-
-@njit(cache=True, inline="always")
-def _update_coeffs(state, params, dt: float) -> None:
-    """Discrete filter gains for this dt (first order: k = 1 − exp(−dt/tau)); the
-    attitude loops are faster while a bias step is being followed."""
-    fast = 1.0 if state[_STEP_T] > 0.0 else 0.0
-    if dt == state[_DT_LAST] and fast == state[_COEF_FAST]:
-        return
-    state[_DT_LAST] = dt
-    state[_COEF_FAST] = fast
-    speedup = params[_P_STEP_SPEEDUP] if fast > 0.0 else 1.0
-    state[_K_REST] = 1.0 - math.exp(-dt / params[_P_REST_TAU])
-    state[_K_MAG_CUR] = 1.0 - math.exp(-dt / params[_P_MAG_CUR_TAU])
-    state[_K_MAG_REF] = 1.0 - math.exp(-dt / params[_P_MAG_REF_TAU])
-    state[_K_MAG] = 1.0 - math.exp(-dt * speedup / params[_P_TAU_MAG])
-    state[_K_PRE] = 1.0 - math.exp(-dt / params[_P_REST_PRE_TAU])
-    state[_K_STEP] = 1.0 - math.exp(-dt / params[_P_STEP_TAU])
-    state[_BW_OM2H], state[_BW_DMP], state[_BW_H] = _butter_coeffs(
-        params[_P_TAU_ACC] / speedup, dt)
-
-
-@njit(cache=True, inline="always")
-def _butter(state, iv: int, ip: int, u: float, om2h: float, dmp: float, h: float) -> None:
-    """One step of the low-pass of input u: velocity state[iv], output state[ip]."""
-    state[iv] = dmp * state[iv] + om2h * (u - state[ip])
-    state[ip] += h * state[iv]
-
-
-@njit(cache=True, inline="always")
-def _bias_scalar_update(state, h0, h1, h2, innovation, r, bias_max) -> None:
-    """Kalman update of the bias with one scalar measurement h·b, noise variance r."""
-    p = _PB
-    ph0 = state[p] * h0 + state[p + 1] * h1 + state[p + 2] * h2
-    ph1 = state[p + 3] * h0 + state[p + 4] * h1 + state[p + 5] * h2
-    ph2 = state[p + 6] * h0 + state[p + 7] * h1 + state[p + 8] * h2
-    s = h0 * ph0 + h1 * ph1 + h2 * ph2 + r
-    if not (s > 0.0):
-        return
-    inv_s = 1.0 / s
-    k0, k1, k2 = ph0 * inv_s, ph1 * inv_s, ph2 * inv_s
-    state[_core.B0] += k0 * innovation
-    state[_core.B0 + 1] += k1 * innovation
-    state[_core.B0 + 2] += k2 * innovation
-    # P ← P − k·(P h)ᵀ (symmetric since P is)
-    state[p] -= k0 * ph0
-    state[p + 1] -= k0 * ph1
-    state[p + 2] -= k0 * ph2
-    state[p + 3] -= k1 * ph0
-    state[p + 4] -= k1 * ph1
-    state[p + 5] -= k1 * ph2
-    state[p + 6] -= k2 * ph0
-    state[p + 7] -= k2 * ph1
-    state[p + 8] -= k2 * ph2
+    if angle > 1e-12:
+        s = math.sin(0.5 * angle) / angle
+        cw, cx, cy, cz = math.cos(0.5 * angle), rx * s, ry * s, rz * s
+        w, qx, qy, qz = state[0], state[1], state[2], state[3]
+        state[0] = cw * w - cx * qx - cy * qy - cz * qz
+        state[1] = cw * qx + cx * w + cy * qz - cz * qy
+        state[2] = cw * qy - cx * qz + cy * w + cz * qx
+        state[3] = cw * qz + cx * qy - cy * qx + cz * w
+        _core.normalize_q(state)
+    bmax = params[_P_B_MAX]
     for j in range(3):
-        b = state[_core.B0 + j]
-        state[_core.B0 + j] = min(max(b, -bias_max), bias_max)
+        b = state[_core.B0 + j] + state[x + _BI + j]
+        state[_core.B0 + j] = min(max(b, -bmax), bmax)
+        state[_V + j] += state[x + _VE + j]
+    state[_MUS] = max(state[_MUS] + state[x + _MU], 0.0)
+    for j in range(_NX):
+        state[x + j] = 0.0
 
 
-@njit(cache=True, inline="always")
-def _dot_b(state, i) -> float:
-    """state[i:i+3] · b̂."""
-    b = _core.B0
-    return state[i] * state[b] + state[i + 1] * state[b + 1] + state[i + 2] * state[b + 2]
+@_core.kernel
+def _kalman_update(state: np.ndarray, params: np.ndarray, m: int, nu0: float, nu1: float,
+                   nu2: float, r0: float, r1: float, r2: float, gate: float) -> bool:
+    """Update with m ≤ 3 rows in state[_H:] (10 wide), innovation ν and diagonal noise R.
 
-
-@njit(cache=True, inline="always")
-def _inflate_on_step(state, params, i_mean, h0, h1, h2, innovation, r, k, nsig2,
-                     pmax) -> None:
-    """Bias steps: let the covariance along h grow when the averaged innovation says so.
-
-    ``state[i_mean]`` low-passes the innovation (gain k, averaging ~1/k samples, so its
-    noise variance is ≈ r·k/2). When its square exceeds ``nsig2`` times what the filter
-    predicts (h·P·hᵀ plus that noise) the bias has changed by far more than the random
-    walk allows; P is raised along h until h·P·hᵀ equals the squared mean, so the next
-    updates can follow the step, and for ``bias_step_hold`` the filter follows it
-    (raised bias random walk on every axis, faster attitude loops; raising it only along
-    h was tried: x/y steps then left a residual error > 3° for 20 s). Below the gate
-    nothing changes.
-    """
-    m = state[i_mean] + k * (innovation - state[i_mean])
-    state[i_mean] = m
-    hh = h0 * h0 + h1 * h1 + h2 * h2
-    if hh < 1e-6:
-        return
-    p = _PB
-    ph0 = state[p] * h0 + state[p + 1] * h1 + state[p + 2] * h2
-    ph1 = state[p + 3] * h0 + state[p + 4] * h1 + state[p + 5] * h2
-    ph2 = state[p + 6] * h0 + state[p + 7] * h1 + state[p + 8] * h2
-    hph = h0 * ph0 + h1 * ph1 + h2 * ph2
-    if m * m <= nsig2 * (hph + 0.5 * r * k):
-        return
-    state[_STEP_T] = params[_P_STEP_HOLD]
-    target = min(m * m, pmax * hh)  # never beyond the initial uncertainty (loop stability)
-    if target <= hph:
-        return
-    add = (target - hph) / (hh * hh)
-    hv = (h0, h1, h2)
-    for a in range(3):
-        for b in range(3):
-            state[p + 3 * a + b] += add * hv[a] * hv[b]
-
-
-@njit(cache=True, inline="always")
-def _setup(state, params) -> None:
-    """First step after initialisation: split q into q_g = q, q_c = identity."""
-    for j in range(4):
-        state[_QG + j] = state[j]
-    state[_QC], state[_QC + 1], state[_QC + 2], state[_QC + 3] = 1.0, 0.0, 0.0, 0.0
-    var = params[_P_B_INIT] ** 2
-    for j in range(9):
-        state[_PB + j] = var if j % 4 == 0 else 0.0
-    state[_READY] = 1.0
-
-
-@njit(cache=True, inline="always")
-def _track(state, i_lp, i_pf, x, y, z, k, kp, first) -> tuple:
-    """Rest detection's filter pair of one sensor: a low-pass (gain k) and a faster
-    pre-filter (gain kp, removes vibration), both started at the first sample; returns
-    pre-filter − low-pass, the recent change."""
-    if first:
-        state[i_lp], state[i_lp + 1], state[i_lp + 2] = x, y, z
-        state[i_pf], state[i_pf + 1], state[i_pf + 2] = x, y, z
-    state[i_lp] += k * (x - state[i_lp])
-    state[i_lp + 1] += k * (y - state[i_lp + 1])
-    state[i_lp + 2] += k * (z - state[i_lp + 2])
-    state[i_pf] += kp * (x - state[i_pf])
-    state[i_pf + 1] += kp * (y - state[i_pf + 1])
-    state[i_pf + 2] += kp * (z - state[i_pf + 2])
-    return (state[i_pf] - state[i_lp], state[i_pf + 1] - state[i_lp + 1],
-            state[i_pf + 2] - state[i_lp + 2])
-
-
-@njit(cache=True, inline="always")
-def _unset(state, i) -> bool:
-    return state[i] == 0.0 and state[i + 1] == 0.0 and state[i + 2] == 0.0
-
-
-@njit(cache=True, inline="always")
-def _mag_steady(state, params, mx, my, mz, mag_ok) -> bool:
-    """Update the magnetometer rest filters; True if its direction is steady. A missing
-    or rejected reading keeps the last verdict (a magnet nearby says nothing about
-    whether the vehicle turns)."""
-    if not mag_ok:
-        return state[_MAG_STEADY] > 0.0
-    _track(state, _MLP, _MPF, mx, my, mz, state[_K_REST], state[_K_PRE],
-           _unset(state, _MLP))
-    lx, ly, lz = state[_MLP], state[_MLP + 1], state[_MLP + 2]
-    px, py, pz = state[_MPF], state[_MPF + 1], state[_MPF + 2]
-    nl = math.sqrt(lx * lx + ly * ly + lz * lz)
-    npf = math.sqrt(px * px + py * py + pz * pz)
-    if nl <= 0.0 or npf <= 0.0:
+    Returns False (and changes nothing) when the innovation's chi-square exceeds ``gate``
+    (gate ≤ 0: no test). The correction is injected at once."""
+    for r in range(m):
+        for i in range(_NX):
+            acc = 0.0
+            for j in range(_NX):
+                h = state[_H + r * _NX + j]
+                if h != 0.0:
+                    acc += state[_pi(i, j)] * h
+            state[_PHT + i * 3 + r] = acc
+    # S = H·P·Hᵀ + R (symmetric, m ≤ 3)
+    s00 = s01 = s02 = s11 = s12 = s22 = 0.0
+    for j in range(_NX):
+        h0 = state[_H + j]
+        s00 += h0 * state[_PHT + j * 3]
+        if m > 1:
+            h1 = state[_H + _NX + j]
+            s01 += h0 * state[_PHT + j * 3 + 1]
+            s11 += h1 * state[_PHT + j * 3 + 1]
+            if m > 2:
+                h2 = state[_H + 2 * _NX + j]
+                s02 += h0 * state[_PHT + j * 3 + 2]
+                s12 += h1 * state[_PHT + j * 3 + 2]
+                s22 += h2 * state[_PHT + j * 3 + 2]
+    s00 += r0
+    if m == 1:
+        if s00 <= 0.0:
+            return False
+        i00, i01, i02, i11, i12, i22 = 1.0 / s00, 0.0, 0.0, 0.0, 0.0, 0.0
+    elif m == 2:
+        s11 += r1
+        det = s00 * s11 - s01 * s01
+        if det <= 0.0:
+            return False
+        i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+        i02 = i12 = i22 = 0.0
+    else:
+        s11 += r1
+        s22 += r2
+        c00 = s11 * s22 - s12 * s12
+        c01 = s02 * s12 - s01 * s22
+        c02 = s01 * s12 - s02 * s11
+        det = s00 * c00 + s01 * c01 + s02 * c02
+        if det <= 0.0:
+            return False
+        i00, i01, i02 = c00 / det, c01 / det, c02 / det
+        i11 = (s00 * s22 - s02 * s02) / det
+        i12 = (s02 * s01 - s00 * s12) / det
+        i22 = (s00 * s11 - s01 * s01) / det
+    # whitened innovation y = S⁻¹ν and the chi-square ν·y
+    y0 = i00 * nu0 + i01 * nu1 + i02 * nu2
+    y1 = i01 * nu0 + i11 * nu1 + i12 * nu2
+    y2 = i02 * nu0 + i12 * nu1 + i22 * nu2
+    d2 = nu0 * y0 + (nu1 * y1 if m > 1 else 0.0) + (nu2 * y2 if m > 2 else 0.0)
+    if gate > 0.0 and not d2 <= gate:
         return False
-    # |lp × pf| / (|lp| |pf|): sine of the direction change
-    cx, cy, cz = ly * pz - lz * py, lz * px - lx * pz, lx * py - ly * px
-    sin_dev = math.sqrt(cx * cx + cy * cy + cz * cz) / (nl * npf)
-    steady = sin_dev < math.sin(params[_P_REST_MAG])
-    state[_MAG_STEADY] = 1.0 if steady else 0.0
-    return steady
+    for i in range(_NX):
+        p0, p1, p2 = state[_PHT + i * 3], state[_PHT + i * 3 + 1], state[_PHT + i * 3 + 2]
+        if m == 1:
+            p1 = p2 = 0.0
+        elif m == 2:
+            p2 = 0.0
+        state[_K + i * 3] = p0 * i00 + p1 * i01 + p2 * i02
+        state[_K + i * 3 + 1] = p0 * i01 + p1 * i11 + p2 * i12
+        state[_K + i * 3 + 2] = p0 * i02 + p1 * i12 + p2 * i22
+        state[_X + i] = p0 * y0 + p1 * y1 + p2 * y2
+    # P ← P − K·(P·Hᵀ)ᵀ, symmetrised
+    for i in range(_NX):
+        for j in range(i, _NX):
+            d = 0.0
+            for r in range(m):
+                d += state[_K + i * 3 + r] * state[_PHT + j * 3 + r]
+            v = 0.5 * (state[_pi(i, j)] + state[_pi(j, i)]) - d
+            state[_pi(i, j)] = v
+            state[_pi(j, i)] = v
+    _inject(state, params)
+    return True
 
 
-@njit(cache=True, inline="always")
-def _rest_detection(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok,
-                    dt) -> bool:
-    """Update the rest low-passes; True once gyro and accelerometer stayed steady."""
-    k, kp = state[_K_REST], state[_K_PRE]
-    # The deviation is checked on pre-filtered samples: vibration (motors, tens of Hz)
-    # is not motion of the vehicle and must not prevent rest detection.
-    dgx, dgy, dgz = _track(state, _GLP, _GPF, gx, gy, gz, k, kp, state[_RUN_T] == 0.0)
-    steady = dgx * dgx + dgy * dgy + dgz * dgz < params[_P_REST_GYR] ** 2
-    # Before the first rest the bias is an uncalibrated zero-rate offset that may lie
-    # anywhere within bias_max (an MPU6050 offset of 2-3 °/s is common). A steady turn
-    # about the vertical also keeps gyro and accelerometer steady; the magnetometer's
-    # direction tells them apart. Without it (or once the bias has been measured at
-    # rest) a steady gyro far from b̂ is taken for a slow turn, not for bias.
-    lim = params[_P_REST_BIAS]
-    # (A reading the disturbance check rejected last sample keeps the last verdict.)
-    usable = mag_ok and state[_core.MAG_REJ] <= 0.0
-    if state[_REST_SEEN] <= 0.0 and _mag_steady(state, params, mx, my, mz, usable):
-        lim = params[_P_B_MAX]
-    b = _core.B0
-    steady = steady and abs(state[_GLP] - state[b]) < lim \
-        and abs(state[_GLP + 1] - state[b + 1]) < lim and abs(state[_GLP + 2] - state[b + 2]) < lim
-    if acc_ok:
-        dax, day, daz = _track(state, _RLP, _APF, ax, ay, az, k, kp, _unset(state, _RLP))
-        steady = steady and dax * dax + day * day + daz * daz < params[_P_REST_ACC] ** 2
-    else:
-        steady = False
-    if steady:
-        state[_REST_T] += dt
-    else:
-        state[_REST_T] = 0.0
-    at_rest = state[_REST_T] >= params[_P_REST_TIME]
-    state[_AT_REST] = 1.0 if at_rest else 0.0
-    return at_rest
+@_core.kernel(inline="always")
+def _clear_rows(state: np.ndarray, m: int) -> None:
+    for k in range(m * _NX):
+        state[_H + k] = 0.0
 
 
-@njit(cache=True, inline="always")
-def _inclination(state, params, ax, ay, az, acc_ok, dt) -> tuple:
-    """Low-pass a_I and align it with the vertical; returns the world correction [rad]."""
-    state[_core.ACC_REJ] = 0.0
-    if not acc_ok:
-        return 0.0, 0.0, False
+@_core.kernel
+def _reset_velocity(state: np.ndarray, vx: float, vy: float, vz: float, sigma: float) -> None:
+    """Re-anchor the velocity (attitude untouched): v ← given, its correlations forgotten."""
+    state[_V], state[_V + 1], state[_V + 2] = vx, vy, vz
+    for i in range(3):
+        for j in range(_NX):
+            state[_pi(_VE + i, j)] = 0.0
+            state[_pi(j, _VE + i)] = 0.0
+        state[_pi(_VE + i, _VE + i)] = sigma * sigma
+    state[_V_REJ_T] = 0.0
+
+
+@_core.kernel
+def _velocity_aiding(state: np.ndarray, params: np.ndarray, T: float, r: tuple) -> bool:
+    """Fuse the pending velocity measurement; True if it was used."""
+    age = state[_PEND_AGE]
     grav = params[_P_GRAV]
-    gated = abs(math.sqrt(ax * ax + ay * ay + az * az) - grav) > params[_P_ACC_GATE]
-    aix, aiy, aiz = _rotate(state, _QG, ax, ay, az)
-    if state[_LP_OK] <= 0.0:
-        state[_ALP1], state[_ALP1 + 1], state[_ALP1 + 2] = 0.0, 0.0, 0.0
-        state[_ALP2], state[_ALP2 + 1], state[_ALP2 + 2] = aix, aiy, aiz
-        state[_LP_OK] = 1.0
-    timed_out = state[_ACC_REJ_T] >= params[_P_ACC_TIMEOUT]
-    if (not gated or timed_out) and state[_RUN_T] < params[_P_ACC_STARTUP]:
-        # Start-up: running mean of a_I, so one vibrating first sample cannot tilt the
-        # start (and, through the tilt, the heading) for several tau_acc.
-        k = dt / (state[_RUN_T] + dt)
-        state[_ALP2] += k * (aix - state[_ALP2])
-        state[_ALP2 + 1] += k * (aiy - state[_ALP2 + 1])
-        state[_ALP2 + 2] += k * (aiz - state[_ALP2 + 2])
-    elif not gated or timed_out:
-        om2h, dmp, h = state[_BW_OM2H], state[_BW_DMP], state[_BW_H]
-        _butter(state, _ALP1, _ALP2, aix, om2h, dmp, h)
-        _butter(state, _ALP1 + 1, _ALP2 + 1, aiy, om2h, dmp, h)
-        _butter(state, _ALP1 + 2, _ALP2 + 2, aiz, om2h, dmp, h)
-    fx, fy, fz = state[_ALP2], state[_ALP2 + 1], state[_ALP2 + 2]
-    nf = math.sqrt(fx * fx + fy * fy + fz * fz)
-    if gated and not timed_out:
-        state[_ACC_REJ_T] += dt
-        state[_core.ACC_REJ] = 1.0
-        return 0.0, 0.0, False
-    if not gated:
-        state[_ACC_REJ_T] = 0.0
-    if nf < 1e-9:
-        return 0.0, 0.0, False
-    # Filtered specific force points up: R(q_c)·f/|f| should be [0, 0, -1] (NED).
-    ux, uy, uz = _rotate(state, _QC, fx / nf, fy / nf, fz / nf)
-    # Smallest rotation taking u onto -z: axis u × (-z) = (-uy, ux, 0), angle acos(-uz).
-    sin_a = math.sqrt(ux * ux + uy * uy)
-    if sin_a < 1e-12:
-        return 0.0, 0.0, True
-    if sin_a < 1e-3 and uz < 0.0:  # small correction: asin series, exact to < 1e-16
-        angle = sin_a * (1.0 + sin_a * sin_a / 6.0)
+    # v at the measurement's time ≈ v − age·(R·f̄ + g)
+    ax = state[_DV] / T
+    ay = state[_DV + 1] / T
+    az = state[_DV + 2] / T + grav
+    m = 0
+    nu0 = nu1 = nu2 = 0.0
+    _clear_rows(state, 3)
+    for i in range(3):
+        z = state[_PEND + i]
+        if math.isfinite(z):
+            a_i = ax if i == 0 else (ay if i == 1 else az)
+            nu = z - (state[_V + i] - age * a_i)
+            state[_H + m * _NX + _VE + i] = 1.0
+            if m == 0:
+                nu0 = nu
+            elif m == 1:
+                nu1 = nu
+            else:
+                nu2 = nu
+            m += 1
+    if m == 0:
+        return False
+    rn = params[_P_AID_N] ** 2
+    ok = _kalman_update(state, params, m, nu0, nu1, nu2, rn, rn, rn, _GATE[m])
+    if ok:
+        state[_V_REJ_T] = 0.0
     else:
-        angle = math.atan2(sin_a, -uz)
-    rx, ry = -uy / sin_a * angle, ux / sin_a * angle
-    _left_rotate_qc(state, rx, ry, 0.0)
-    return rx, ry, True
+        state[_V_REJ_T] += T
+        if state[_V_REJ_T] > params[_P_V_RESET]:
+            vx = state[_PEND] if math.isfinite(state[_PEND]) else state[_V]
+            vy = state[_PEND + 1] if math.isfinite(state[_PEND + 1]) else state[_V + 1]
+            vz = state[_PEND + 2] if math.isfinite(state[_PEND + 2]) else state[_V + 2]
+            _reset_velocity(state, vx, vy, vz, params[_P_AID_N])
+    return ok
 
 
-@njit(cache=True, inline="always")
-def _mag_disturbed(state, params, norm, dip, dt) -> bool:
-    """Track field norm/dip against the learned reference; True when disturbed."""
-    kc = state[_K_MAG_CUR]
-    if state[_MN_CUR] <= 0.0:
-        state[_MN_CUR], state[_MD_CUR] = norm, dip
-        state[_MN_CAND], state[_MD_CAND] = norm, dip
-    state[_MN_CUR] += kc * (norm - state[_MN_CUR])
-    state[_MD_CUR] += kc * (dip - state[_MD_CUR])
-    n_cur, d_cur = state[_MN_CUR], state[_MD_CUR]
+@_core.kernel
+def _drag_update(state: np.ndarray, params: np.ndarray, T: float, r: tuple) -> bool:
+    """Rotor drag: f̄_xy = −μ·(Rᵀv)_xy, linearised in δθ, δv and δμ."""
+    vx, vy, vz = state[_V], state[_V + 1], state[_V + 2]
+    mu = state[_MUS]
+    # body velocity u = Rᵀv; with R_true = (I + [δθ]×)R: u_true = u + Rᵀ[v]×δθ
+    ux = r[0] * vx + r[3] * vy + r[6] * vz
+    uy = r[1] * vx + r[4] * vy + r[7] * vz
+    # rows of Rᵀ[v]×: Rᵀ column k dotted with [v]× columns
+    # [v]× = [[0,-vz,vy],[vz,0,-vx],[-vy,vx,0]]
+    _clear_rows(state, 2)
+    for row in range(2):
+        c0, c1, c2 = r[row], r[3 + row], r[6 + row]  # column `row` of R = row of Rᵀ
+        j0 = c1 * vz - c2 * vy
+        j1 = -c0 * vz + c2 * vx
+        j2 = c0 * vy - c1 * vx
+        base = _H + row * _NX
+        state[base + _TH] = -mu * j0
+        state[base + _TH + 1] = -mu * j1
+        state[base + _TH + 2] = -mu * j2
+        state[base + _VE] = -mu * c0
+        state[base + _VE + 1] = -mu * c1
+        state[base + _VE + 2] = -mu * c2
+        state[base + _MU] = -(ux if row == 0 else uy)
+    fx, fy = state[_FB] / T, state[_FB + 1] / T
+    rn = params[_P_DRAG_N] ** 2 / T
+    return _kalman_update(state, params, 2, fx + mu * ux, fy + mu * uy, 0.0, rn, rn, 0.0,
+                          _GATE[2])
+
+
+@_core.kernel
+def _velocity_prior(state: np.ndarray, params: np.ndarray, T: float, sigma: float,
+                    axes: int) -> bool:
+    """Pseudo-measurement v ≈ 0 on the last ``axes`` axes (3: all, 1: vertical)."""
+    _clear_rows(state, axes)
+    first = 3 - axes
+    for k in range(axes):
+        state[_H + k * _NX + _VE + first + k] = 1.0
+    rn = sigma * sigma / T
+    if axes == 1:
+        return _kalman_update(state, params, 1, -state[_V + 2], 0.0, 0.0, rn, 0.0, 0.0,
+                              _GATE[1])
+    return _kalman_update(state, params, 3, -state[_V], -state[_V + 1], -state[_V + 2],
+                          rn, rn, rn, _GATE[3])
+
+
+@_core.kernel
+def _rest_update(state: np.ndarray, params: np.ndarray, T: float) -> None:
+    """At rest the low-passed gyro is the bias and the velocity is zero."""
+    _clear_rows(state, 3)
+    for i in range(3):
+        state[_H + i * _NX + _BI + i] = 1.0
+    rn = params[_P_REST_N] ** 2 / T
+    _kalman_update(state, params, 3, state[_GLP] - state[_core.B0],
+                   state[_GLP + 1] - state[_core.B0 + 1], state[_GLP + 2] - state[_core.B0 + 2],
+                   rn, rn, rn, 0.0)
+    _clear_rows(state, 3)
+    for i in range(3):
+        state[_H + i * _NX + _VE + i] = 1.0
+    rn = params[_P_REST_V_N] ** 2 / T
+    _kalman_update(state, params, 3, -state[_V], -state[_V + 1], -state[_V + 2],
+                   rn, rn, rn, 0.0)
+    state[_V_REJ_T] = 0.0
+
+
+@_core.kernel
+def _mag_disturbed(state: np.ndarray, params: np.ndarray, norm: float, dip: float,
+                   T: float) -> bool:
+    """Field norm/dip against the learned reference; True while disturbed."""
+    kc = 1.0 - math.exp(-T / params[_P_MAG_REF_TAU])
     nth, dth = params[_P_MAG_NORM], params[_P_MAG_DIP]
-    kr = state[_K_MAG_REF]
-    # Candidate for a new reference: a field that keeps its norm and dip.
-    if abs(n_cur - state[_MN_CAND]) < nth * state[_MN_CAND] and \
-            abs(d_cur - state[_MD_CAND]) < dth:
-        state[_CAND_T] += dt
-        state[_MN_CAND] += kr * (n_cur - state[_MN_CAND])
-        state[_MD_CAND] += kr * (d_cur - state[_MD_CAND])
+    if state[_MN_C] <= 0.0:
+        state[_MN_C], state[_MD_C] = norm, dip
+    if abs(norm - state[_MN_C]) < nth * state[_MN_C] and abs(dip - state[_MD_C]) < dth:
+        state[_CAND_T] += T
+        state[_MN_C] += kc * (norm - state[_MN_C])
+        state[_MD_C] += kc * (dip - state[_MD_C])
     else:
-        state[_MN_CAND], state[_MD_CAND], state[_CAND_T] = n_cur, d_cur, 0.0
-    if state[_REF_OK] < 1.0:
-        if state[_CAND_T] >= params[_P_MAG_NEW_FIRST]:
-            state[_MN_REF], state[_MD_REF] = state[_MN_CAND], state[_MD_CAND]
+        state[_MN_C], state[_MD_C], state[_CAND_T] = norm, dip, 0.0
+    if state[_REF_OK] <= 0.0:
+        if state[_CAND_T] >= params[_P_MAG_REF_T]:
+            state[_MN_REF], state[_MD_REF] = state[_MN_C], state[_MD_C]
             state[_REF_OK] = 1.0
-            return False
-        # No reference yet (the first seconds): a field that has been consistent for a
-        # moment is provisional; a reading far from it (a magnet near the vehicle at
-        # start-up) is disturbed, until it is itself consistent long enough above.
-        if state[_REF_OK] <= 0.0 and state[_CAND_T] >= params[_P_MAG_PROVISIONAL]:
-            state[_MN_REF], state[_MD_REF] = state[_MN_CAND], state[_MD_CAND]
-            state[_REF_OK] = 0.5
-        if state[_REF_OK] <= 0.0:
-            return False
-        disturbed = abs(n_cur - state[_MN_REF]) > nth * state[_MN_REF] or \
-            abs(d_cur - state[_MD_REF]) > dth
-        if not disturbed:
-            state[_MN_REF], state[_MD_REF] = state[_MN_CAND], state[_MD_CAND]
-        return disturbed
-    disturbed = abs(n_cur - state[_MN_REF]) > nth * state[_MN_REF] or \
-        abs(d_cur - state[_MD_REF]) > dth
-    if disturbed and state[_CAND_T] >= params[_P_MAG_NEW]:
-        # A new, consistent field (moved to another place): adopt it.
-        state[_MN_REF], state[_MD_REF] = state[_MN_CAND], state[_MD_CAND]
+        return False
+    disturbed = abs(norm - state[_MN_REF]) > nth * state[_MN_REF] or \
+        abs(dip - state[_MD_REF]) > dth
+    if disturbed and state[_CAND_T] >= params[_P_MAG_NEW_T]:
+        state[_MN_REF], state[_MD_REF] = state[_MN_C], state[_MD_C]
         disturbed = False
     if not disturbed:
-        state[_MN_REF] += kr * (n_cur - state[_MN_REF])
-        state[_MD_REF] += kr * (d_cur - state[_MD_REF])
+        state[_MN_REF] += kc * (norm - state[_MN_REF])
+        state[_MD_REF] += kc * (dip - state[_MD_REF])
     return disturbed
 
 
-@njit(cache=True, inline="always")
-def _heading(state, params, mx, my, mz, mag_ok, dt) -> bool:
-    """Turn q_c about the world vertical toward magnetic north; True if it did."""
+@_core.kernel
+def _heading_update(state: np.ndarray, params: np.ndarray, T: float) -> None:
+    """Heading-only magnetometer update (gain on the tilt errors zeroed, Joseph form)."""
     state[_core.MAG_REJ] = 0.0
-    state[_MAG_BIAS_OK] = 0.0
-    state[_MAG_RZ] = 0.0
-    if not mag_ok:
-        return False
-    # World-frame field through the current attitude q = q_c ⊗ q_g (already in state[0:4]).
+    mx, my, mz = state[_MAG], state[_MAG + 1], state[_MAG + 2]
     ex, ey, ez = _core.body_to_world(state, mx, my, mz)
     horiz = math.sqrt(ex * ex + ey * ey)
     norm = math.sqrt(horiz * horiz + ez * ez)
     if horiz < 1e-9 * (norm + 1e-300):
-        return False
-    if _mag_disturbed(state, params, norm, math.atan2(ez, horiz), dt):
+        return
+    if _mag_disturbed(state, params, norm, math.atan2(ez, horiz), T):
         state[_core.MAG_REJ] = 1.0
-        return False
-    state[_MAG_T] += dt
-    k = state[_K_MAG]
-    t = state[_MAG_T]
-    if t < params[_P_MAG_STARTUP]:
-        k = max(k, dt / t)  # running mean of the first samples' headings
-    elif state[_REF_OK] >= 1.0:
-        # Only a field checked against a learned reference may teach the bias.
-        state[_MAG_BIAS_OK] = 1.0
-    rz = -k * math.atan2(ey, ex)
-    state[_MAG_RZ] = rz
-    _left_rotate_qc(state, 0.0, 0.0, rz)
-    return True
+        return
+    nu = -math.atan2(ey, ex)  # magnetic north is +x: the field's heading is the error
+    rn = params[_P_MAG_N] ** 2 / T
+    p22 = state[_pi(2, 2)]
+    s = p22 + rn
+    if nu * nu > _GATE[1] * s:
+        state[_core.MAG_REJ] = 1.0
+        return
+    # K = P[:, 2]/s with K[0] = K[1] = 0; P ← (I − K e₂ᵀ) P (I − K e₂ᵀ)ᵀ + K·r·Kᵀ,
+    # from a copy c of column 2 (= row 2) since P is overwritten in place.
+    for i in range(_NX):
+        c = state[_pi(i, 2)]
+        state[_PHT + i] = c
+        state[_K + i] = 0.0 if i < 2 else c / s
+        state[_X + i] = state[_K + i] * nu
+    for i in range(_NX):
+        ki, ci = state[_K + i], state[_PHT + i]
+        for j in range(i, _NX):
+            kj, cj = state[_K + j], state[_PHT + j]
+            v = state[_pi(i, j)] - ki * cj - kj * ci + ki * kj * s
+            state[_pi(i, j)] = v
+            state[_pi(j, i)] = v
+    _inject(state, params)
 
 
-@njit(cache=True, inline="always")
-def _bias_update(state, params, at_rest, rx, ry, acc_used, dt) -> None:
-    """Kalman update of the gyro bias: at rest from the gyro, in motion from the
-    inclination loop.
+@_core.kernel(inline="always")
+def _rest_detection(state: np.ndarray, params: np.ndarray, gx: float, gy: float,
+                    gz: float, ax: float, ay: float, az: float, acc_ok: bool,
+                    dt: float) -> None:
+    k = 1.0 - math.exp(-dt / params[_P_REST_TAU])
+    if state[_LP_OK] <= 0.0:
+        state[_GLP], state[_GLP + 1], state[_GLP + 2] = gx, gy, gz
+        state[_ALP], state[_ALP + 1], state[_ALP + 2] = ax, ay, az
+        state[_LP_OK] = 1.0
+    state[_GLP] += k * (gx - state[_GLP])
+    state[_GLP + 1] += k * (gy - state[_GLP + 1])
+    state[_GLP + 2] += k * (gz - state[_GLP + 2])
+    dg = (gx - state[_GLP]) ** 2 + (gy - state[_GLP + 1]) ** 2 + (gz - state[_GLP + 2]) ** 2
+    steady = acc_ok and dg < params[_P_REST_GYR] ** 2
+    if acc_ok:
+        state[_ALP] += k * (ax - state[_ALP])
+        state[_ALP + 1] += k * (ay - state[_ALP + 1])
+        state[_ALP + 2] += k * (az - state[_ALP + 2])
+        da = (ax - state[_ALP]) ** 2 + (ay - state[_ALP + 1]) ** 2 + (az - state[_ALP + 2]) ** 2
+        steady = steady and da < params[_P_REST_ACC] ** 2
+    state[_REST_T] = state[_REST_T] + dt if steady else 0.0
 
-    A bias error e makes the estimate drift at the world rate R(q)·e; the inclination
-    loop sees that drift through its low-pass and answers with correction rates
-    ``(rx, ry)/dt ≈ −LP(R)·e``. The measurement rows are therefore rows x and y of R(q)
-    passed through the same Butterworth low-pass, which keeps the bias loop consistent
-    with the lag. As the body turns, these rows sweep all body axes, so all three bias
-    components become observable. The heading loop is deliberately not used: on BROAD
-    it added nothing, and it would let the magnetometer reach the inclination through
-    the bias.
-    """
-    w, x, y, z = state[0], state[1], state[2], state[3]
-    r0 = (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y))
-    r1 = (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x))
-    state[_RUN_T] += dt
-    r2 = (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
-    if state[_RUN_T] <= dt * 1.5:
-        for j in range(3):
-            state[_HP + j], state[_HP + 3 + j] = r0[j], r1[j]
-            state[_HV + j], state[_HV + 3 + j] = 0.0, 0.0
+
+@_core.kernel
+def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
+    """Everything done once per update period."""
+    _predict_covariance(state, params, T)
+    r = _rotation(state)
+    state[_core.ACC_REJ] = 0.0
+    if state[_ACC_N] <= 0.0:
+        # Nothing measured the specific force: the velocity says nothing about the tilt.
+        _reset_velocity(state, state[_V], state[_V + 1], state[_V + 2],
+                        math.sqrt(max(state[_pi(_VE, _VE)], 0.0)) + params[_P_V_PRIOR])
+        state[_PEND] = state[_PEND + 1] = state[_PEND + 2] = math.nan
+        state[_core.ACC_REJ] = 1.0
+    elif math.isfinite(state[_PEND]) or math.isfinite(state[_PEND + 1]) or \
+            math.isfinite(state[_PEND + 2]):
+        if not _velocity_aiding(state, params, T, r):
+            state[_core.ACC_REJ] = 1.0
+        state[_PEND] = state[_PEND + 1] = state[_PEND + 2] = math.nan
+        r = _rotation(state)
+    aided = state[_core.RUN_T] - state[_AID_T] <= params[_P_AID_TIMEOUT]
+    at_rest = state[_REST_T] >= params[_P_REST_T]
+    if state[_ACC_N] <= 0.0:
+        pass
+    elif at_rest:
+        _rest_update(state, params, T)
+    elif params[_P_DRAG] > 0.0:
+        if not _drag_update(state, params, T, r):
+            state[_core.ACC_REJ] = 1.0
+        if not aided:
+            _velocity_prior(state, params, T, params[_P_VZ_PRIOR], 1)
+    elif not aided:
+        if _velocity_prior(state, params, T, params[_P_V_PRIOR], 3):
+            state[_V_REJ_T] = 0.0
+        else:
+            state[_core.ACC_REJ] = 1.0
+            state[_V_REJ_T] += T
+            if state[_V_REJ_T] > params[_P_V_RESET]:
+                _reset_velocity(state, 0.0, 0.0, 0.0, params[_P_V_PRIOR])
+    if state[_MAG_OK] > 0.0:
+        _heading_update(state, params, T)
+        state[_MAG_OK] = 0.0
+    else:
+        state[_core.MAG_REJ] = 0.0
+
+
+@_core.kernel
+def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
+          vx, vy, vz, v_age) -> None:
     b0, b1, b2 = state[_core.B0], state[_core.B0 + 1], state[_core.B0 + 2]
-    if state[_RUN_T] <= dt * 1.5:
-        state[_XB], state[_XB + 2] = 0.0, 0.0
-        state[_XB + 1] = r0[0] * b0 + r0[1] * b1 + r0[2] * b2
-        state[_XB + 3] = r1[0] * b0 + r1[1] * b1 + r1[2] * b2
-    if state[_MAG_T] < params[_P_MAG_STARTUP]:
-        # The heading loop has just started from a zero error: its answer to a bias
-        # builds up from zero with its time constant, and so does the model's.
-        for j in range(3):
-            state[_HZ + j] = 0.0
-        state[_ZB] = 0.0
-    elif state[_MAG_RZ] != 0.0:  # only while the heading loop actually runs
-        km = state[_K_MAG]
-        for j in range(3):
-            state[_HZ + j] += km * (r2[j] - state[_HZ + j])
-        state[_ZB] += km * (r2[0] * b0 + r2[1] * b1 + r2[2] * b2 - state[_ZB])
-    om2h, dmp, h = state[_BW_OM2H], state[_BW_DMP], state[_BW_H]
+    grav = params[_P_GRAV]
+    if acc_ok:
+        # strapdown: specific force rotated with the attitude at the middle of the step
+        f0x, f0y, f0z = _core.body_to_world(state, ax, ay, az)
+        _core.integrate_exact(state, gx - b0, gy - b1, gz - b2, dt)
+        f1x, f1y, f1z = _core.body_to_world(state, ax, ay, az)
+        fx, fy, fz = 0.5 * (f0x + f1x), 0.5 * (f0y + f1y), 0.5 * (f0z + f1z)
+        state[_FB] += ax * dt
+        state[_FB + 1] += ay * dt
+        state[_FB + 2] += az * dt
+        state[_ACC_N] += 1.0
+    else:
+        # No usable specific force (NaN, saturated): the gyro alone carries the attitude;
+        # a period without any usable sample makes no velocity statement (_kalman_step).
+        _core.integrate_exact(state, gx - b0, gy - b1, gz - b2, dt)
+        fx, fy, fz = 0.0, 0.0, -grav
+    state[_V] += fx * dt
+    state[_V + 1] += fy * dt
+    state[_V + 2] += (fz + grav) * dt
+    state[_DV] += fx * dt
+    state[_DV + 1] += fy * dt
+    state[_DV + 2] += fz * dt
+    state[_ACC_T] += dt
+    _rest_detection(state, params, gx, gy, gz, ax, ay, az, acc_ok, dt)
+    if mag_ok:
+        state[_MAG], state[_MAG + 1], state[_MAG + 2] = mx, my, mz
+        state[_MAG_OK] = 1.0
+    if math.isfinite(vx) or math.isfinite(vy) or math.isfinite(vz):
+        state[_PEND], state[_PEND + 1], state[_PEND + 2] = vx, vy, vz
+        state[_PEND_AGE] = v_age
+        state[_AID_T] = state[_core.RUN_T]
+    elif math.isfinite(state[_PEND]) or math.isfinite(state[_PEND + 1]) or \
+            math.isfinite(state[_PEND + 2]):
+        state[_PEND_AGE] += dt  # a measurement waiting for the update grows older
+    if state[_ACC_T] + 1e-9 * dt < params[_P_PERIOD]:
+        return
+    T = state[_ACC_T]
+    _kalman_step(state, params, T)
+    state[_ACC_T] = 0.0
+    state[_ACC_N] = 0.0
     for j in range(3):
-        _butter(state, _HV + j, _HP + j, r0[j], om2h, dmp, h)
-        _butter(state, _HV + 3 + j, _HP + 3 + j, r1[j], om2h, dmp, h)
-    _butter(state, _XB, _XB + 1, r0[0] * b0 + r0[1] * b1 + r0[2] * b2, om2h, dmp, h)
-    _butter(state, _XB + 2, _XB + 3, r1[0] * b0 + r1[1] * b1 + r1[2] * b2, om2h, dmp, h)
-    bmax = params[_P_B_MAX]
-    ks, nsig2 = state[_K_STEP], params[_P_STEP_NSIG] ** 2
-    pmax = params[_P_B_INIT] ** 2
-    if at_rest:
-        state[_REST_SEEN] = 1.0
-        r = params[_P_B_REST] ** 2 / dt
-        glp0, glp1, glp2 = state[_GLP], state[_GLP + 1], state[_GLP + 2]
-        _bias_scalar_update(state, 1.0, 0.0, 0.0, glp0 - state[_core.B0], r, bmax)
-        _bias_scalar_update(state, 0.0, 1.0, 0.0, glp1 - state[_core.B0 + 1], r, bmax)
-        _bias_scalar_update(state, 0.0, 0.0, 1.0, glp2 - state[_core.B0 + 2], r, bmax)
-    elif acc_used and state[_RUN_T] >= params[_P_TAU_ACC]:
-        r = params[_P_B_MOTION] ** 2 / dt
-        nu = -rx / dt + state[_XB + 1] - _dot_b(state, _HP)
-        _inflate_on_step(state, params, _STEP_M, state[_HP], state[_HP + 1],
-                         state[_HP + 2], nu, r, ks, nsig2, pmax)
-        _bias_scalar_update(state, state[_HP], state[_HP + 1], state[_HP + 2], nu, r, bmax)
-        nu = -ry / dt + state[_XB + 3] - _dot_b(state, _HP + 3)
-        _inflate_on_step(state, params, _STEP_M + 1, state[_HP + 3], state[_HP + 4],
-                         state[_HP + 5], nu, r, ks, nsig2, pmax)
-        _bias_scalar_update(state, state[_HP + 3], state[_HP + 4], state[_HP + 5], nu, r,
-                            bmax)
-    if not at_rest and state[_MAG_BIAS_OK] > 0.0:
-        r = params[_P_B_MAG] ** 2 / dt
-        nu = -state[_MAG_RZ] / dt + state[_ZB] - _dot_b(state, _HZ)
-        _inflate_on_step(state, params, _STEP_M + 2, state[_HZ], state[_HZ + 1],
-                         state[_HZ + 2], nu, r, ks, nsig2, pmax)
-        _bias_scalar_update(state, state[_HZ], state[_HZ + 1], state[_HZ + 2], nu, r, bmax)
-
-
-@njit(cache=True)
-def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt) -> None:
-    if state[_READY] <= 0.0:
-        _setup(state, params)
-    _update_coeffs(state, params, dt)
-    b0, b1, b2 = state[_core.B0], state[_core.B0 + 1], state[_core.B0 + 2]
-    # 1. strapdown with the bias removed
-    _strapdown(state, gx - b0, gy - b1, gz - b2, dt)
-    # 2. bias prediction (random walk; faster for a while after a detected step, so the
-    #    filter keeps following the new bias instead of settling halfway)
-    qb = params[_P_B_RW] ** 2 * dt
-    pmax = params[_P_B_INIT] ** 2
-    if state[_STEP_T] > 0.0:
-        state[_STEP_T] -= dt
-        qb += params[_P_STEP_RW] ** 2 * dt
-        pmax = max(pmax, params[_P_B_MAX] ** 2)
-    for j in range(3):
-        d = _PB + 4 * j
-        state[d] = min(state[d] + qb, pmax)
-    at_rest = _rest_detection(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok,
-                              mag_ok, dt)
-    # 3. inclination from the inertial-frame filtered accelerometer
-    rx, ry, acc_used = _inclination(state, params, ax, ay, az, acc_ok, dt)
-    _qmul_into(state, 0, state[_QC], state[_QC + 1], state[_QC + 2], state[_QC + 3],
-               state[_QG], state[_QG + 1], state[_QG + 2], state[_QG + 3])
-    # 4. heading from the magnetometer (rotation about the world vertical only)
-    if _heading(state, params, mx, my, mz, mag_ok, dt):
-        _qmul_into(state, 0, state[_QC], state[_QC + 1], state[_QC + 2], state[_QC + 3],
-                   state[_QG], state[_QG + 1], state[_QG + 2], state[_QG + 3])
-    _core.normalize_q(state)
-    # 5. bias measurement update
-    _bias_update(state, params, at_rest, rx, ry, acc_used, dt)
+        state[_DV + j] = 0.0
+        state[_FB + j] = 0.0
 
 
 @register
 class Eskf(Estimator):
-    """Inertial-frame filtered inclination + heading-only magnetometer + Kalman gyro bias."""
+    """Multiplicative error-state Kalman filter: attitude, gyro bias, velocity (and a
+    multirotor's drag coefficient) in one filter; velocity aiding, rotor drag or a
+    bounded-velocity prior correct the tilt, the magnetometer only the heading."""
 
     name = "eskf"
     Params = EskfParams
     _state_size = _STATE_SIZE
-    _update_one, _run_batch = (staticmethod(k) for k in _core.make_kernels(_step))
+    _update_one, _run_batch = (staticmethod(k) for k in
+                               _core.make_kernels(_step, takes_velocity=True))
 
     def _pack_params(self, p: EskfParams) -> np.ndarray:
-        values = [float(getattr(p, f)) for f in _PARAM_FIELDS]
-        if not p.bias_step_speedup >= 1.0:
-            raise ValueError(f"parameter 'bias_step_speedup' must be >= 1, got "
-                             f"{p.bias_step_speedup!r}")
-        positive = ("tau_acc", "tau_mag", "rest_tau", "rest_prefilter_tau", "bias_step_tau",
-                    "mag_current_tau", "mag_ref_tau")
+        positive = ("update_period", "gravity", "gyro_noise", "bias_init", "bias_max",
+                    "tilt_init", "heading_init", "velocity_prior", "velocity_reset_time",
+                    "vel_aid_noise", "drag_sigma_init", "drag_noise",
+                    "vertical_velocity_prior", "mag_noise", "mag_norm_th", "mag_dip_th",
+                    "mag_ref_tau", "rest_gyr_th", "rest_acc_th", "rest_tau", "rest_noise",
+                    "rest_velocity_noise")
         for f in positive:
-            if not getattr(p, f) > 0.0:
-                raise ValueError(f"parameter {f!r} must be > 0, got {getattr(p, f)!r}")
-        return np.array(values)
+            value = getattr(p, f)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"parameter {f!r} must be a finite number > 0, got {value!r}")
+        for f in ("bias_rw", "velocity_rw", "drag", "mag_ref_time", "mag_new_time",
+                  "rest_time"):
+            value = getattr(p, f)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"parameter {f!r} must be a finite number >= 0, got "
+                                 f"{value!r}")
+        return np.array([float(getattr(p, f)) for f in _PARAM_FIELDS])
+
+    def _init_private(self, state: np.ndarray, p: EskfParams) -> None:
+        _init_covariance(state, self._params_vec)
+        state[_MUS] = p.drag
+        state[_AID_T] = -math.inf
+        state[_PEND:_PEND + 3] = math.nan
+
+    @property
+    def velocity(self) -> np.ndarray:
+        """The filter's velocity [m/s], internal frame (magnetic NED)."""
+        return self._state[_V:_V + 3].copy()
+
+    @property
+    def drag_coefficient(self) -> float:
+        """The multirotor drag coefficient μ [1/s] (0 when the drag model is off)."""
+        return float(self._state[_MUS])

@@ -30,7 +30,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from . import _core
 from . import quat as Q
@@ -56,7 +55,7 @@ class EulerParams(CommonParams):
                                                     "flagged as gimbal lock (0 < margin < pi/2)")
 
 
-@njit(cache=True, inline="always")
+@_core.kernel(inline="always")
 def _wrap_pi(a: float) -> float:
     """Angle in (-pi, pi]."""
     if -math.pi < a <= math.pi:
@@ -65,7 +64,7 @@ def _wrap_pi(a: float) -> float:
     return math.pi if a <= -math.pi else a
 
 
-@njit(cache=True)
+@_core.kernel
 def _q_from_angles(state: np.ndarray) -> None:
     """state[0:4] ← qz(ψ) ⊗ qy(θ) ⊗ qx(φ)."""
     hr, hp, hy = 0.5 * state[ROLL], 0.5 * state[PITCH], 0.5 * state[YAW]
@@ -79,7 +78,7 @@ def _q_from_angles(state: np.ndarray) -> None:
     _core.normalize_q(state)
 
 
-@njit(cache=True)
+@_core.kernel
 def _angles_from_q(state: np.ndarray) -> None:
     """Angles ← Z-Y-X Euler angles of state[0:4] (gimbal-lock safe, like quat.to_euler)."""
     w, x, y, z = state[0], state[1], state[2], state[3]
@@ -102,7 +101,7 @@ def _angles_from_q(state: np.ndarray) -> None:
     state[ANGLES_SET] = 1.0
 
 
-@njit(cache=True)
+@_core.kernel
 def _euler_ode_step(state: np.ndarray, p: float, q: float, r: float, dt: float) -> None:
     """One first-order step of the Euler-angle rate equation (|cosθ| well above 0)."""
     roll, pitch = state[ROLL], state[PITCH]
@@ -122,7 +121,7 @@ def _euler_ode_step(state: np.ndarray, p: float, q: float, r: float, dt: float) 
     state[ROLL], state[PITCH], state[YAW] = _wrap_pi(roll), pitch, _wrap_pi(yaw)
 
 
-@njit(cache=True)
+@_core.kernel
 def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt) -> None:
     if state[ANGLES_SET] <= 0.0:
         _angles_from_q(state)  # first step after initialisation from q0 or a sample

@@ -39,7 +39,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from . import _core
 from .base import CommonParams, Estimator, param
@@ -68,7 +67,7 @@ class KalmanParams(CommonParams):
                               "paper's A = I + ½Ω·dt (q normalised after each step)")
 
 
-@njit(cache=True)
+@_core.kernel
 def _predict(state: np.ndarray, gx: float, gy: float, gz: float, dt: float, q_k: float,
              exact: bool) -> None:
     """q ← A·q, P ← A·P·Aᵀ + q_k·I with A = c·I + k·Ω(ω)."""
@@ -106,7 +105,7 @@ def _predict(state: np.ndarray, gx: float, gy: float, gz: float, dt: float, q_k:
             state[P_START + 4 * i + j] = s + (q_k if i == j else 0.0)
 
 
-@njit(cache=True)
+@_core.kernel
 def _measure(state: np.ndarray, ax: float, ay: float, az: float, mx: float, my: float,
              mz: float, mag_ok: bool) -> None:
     """state[Z:Z+4] ← z = q_z(−ψ_m) ⊗ q⁻ ⊗ r (see module docstring)."""
@@ -137,7 +136,7 @@ def _measure(state: np.ndarray, ax: float, ay: float, az: float, mx: float, my: 
     state[Z_START + 3] = hc * zz + hs * zw
 
 
-@njit(cache=True)
+@_core.kernel
 def _update(state: np.ndarray, r_k: float) -> None:
     """K = P(P + r_k I)⁻¹, q += K(z − q), P = (I − K)P, via Cholesky of S = P + r_k I."""
     if state[0] * state[Z_START] + state[1] * state[Z_START + 1] + \
@@ -186,7 +185,7 @@ def _update(state: np.ndarray, r_k: float) -> None:
                                                 + state[L_START + 4 * j + i])
 
 
-@njit(cache=True)
+@_core.kernel
 def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt) -> None:
     _predict(state, gx, gy, gz, dt, params[0] * dt, params[3] > 0.0)
     _core.normalize_q(state)

@@ -33,7 +33,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from numba import njit
 
 from . import _core
 from .base import CommonParams, Estimator, param
@@ -51,7 +50,7 @@ class MadgwickParams(CommonParams):
                                             "for the BROAD paper's published numbers)")
 
 
-@njit(cache=True)
+@_core.kernel
 def _gradient(p0, p1, p2, p3, ax, ay, az, use_mag, mx, my, mz, half_reference):
     """Jᵀf for the NWU objective, with q = (p0, p1, p2, p3) and unit ``a``, ``m``."""
     # Gravity (specific force "up" = +z in NWU): f_g = Rᵀ·ẑ − a.
@@ -86,7 +85,7 @@ def _gradient(p0, p1, p2, p3, ax, ay, az, use_mag, mx, my, mz, half_reference):
     return s0, s1, s2, s3
 
 
-@njit(cache=True)
+@_core.kernel
 def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt) -> None:
     # NED -> NWU: p = [0, 1, 0, 0] ⊗ q
     p0, p1, p2, p3 = -state[1], state[0], -state[3], state[2]

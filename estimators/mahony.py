@@ -33,7 +33,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from numba import njit
 
 from . import _core
 from .base import CommonParams, Estimator, param
@@ -62,7 +61,7 @@ class MahonyParams(CommonParams):
                                "reference code; True: exact axis-angle step")
 
 
-@njit(cache=True)
+@_core.kernel
 def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt) -> None:
     kp, ki = params[_KP], params[_KI]
     ex, ey, ez = 0.0, 0.0, 0.0

@@ -9,7 +9,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from . import _core
 from .base import CommonParams, Estimator, param
@@ -22,7 +21,7 @@ class QuaternionParams(CommonParams):
                               "seeds' first-order step q + ½ q ⊗ ω · dt (both renormalised)")
 
 
-@njit(cache=True)
+@_core.kernel
 def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt) -> None:
     if params[0] > 0.0:
         _core.integrate_exact(state, gx, gy, gz, dt)

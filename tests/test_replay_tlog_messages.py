@@ -95,7 +95,14 @@ def test_raw_imu_with_gy86_profile(tmp_path, motion):
     assert rec.source == "RAW_IMU" and rec.reference is None
     np.testing.assert_allclose(rec.acc, motion.acc, atol=0.51 * board.accel_scale)
     np.testing.assert_allclose(rec.mag, motion.mag, atol=0.51 * board.mag_scale)
-    # The wrong profile reads the same integers as ArduPilot's mG: a different vector.
-    assert not np.allclose(replay.load(path).acc, motion.acc, atol=0.5)
+    assert rec.warnings == ()
+    # Without --board the profile that gives 1 g at rest is chosen, and said so.
+    detected = replay.load(path)
+    assert detected.board == "gy86" and np.array_equal(detected.acc, rec.acc)
+    assert any("gy86 (detected)" in n for n in detected.notes)
+    # The wrong profile reads the same integers as ArduPilot's mG: 4 g, and a warning.
+    wrong = replay.load(path, board="ardupilot")
+    assert not np.allclose(wrong.acc, motion.acc, atol=0.5)
+    assert len(wrong.warnings) == 1 and "--board gy86" in wrong.warnings[0]
     with pytest.raises(ValueError, match="unknown board profile"):
         replay.load(path, board="pixhawk9")

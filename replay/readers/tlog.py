@@ -327,7 +327,7 @@ def _velocity_rows(messages: dict[str, list], src: tuple, clock: BoardClock
             v = np.column_stack([speed * np.cos(cog), speed * np.sin(cog),
                                  np.full(len(rows), np.nan)])
             stamp, scale = "time_usec", 1e-6
-        if len(rows) < 2:
+        if not rows:
             continue
         arrival = clock.preceding(np.array([m._order for m in rows]))
         own = np.array([getattr(m, stamp) for m in rows], dtype=float) * scale

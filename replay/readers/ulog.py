@@ -54,6 +54,7 @@ def read(path: Path, reference: str = "auto") -> Recording:
         name, data, fmt = mag_topic
         tm, (m,), _ = clean_stream(_time(data, origin), _vec(data, fmt))
         mag = sample_and_hold(tm, m, t)
+        notes.append(f"magnetometer from {name} ({len(tm)} readings, held between them)")
         first, t, (gyr, acc, mag) = trim_before_first_mag(t, mag, [gyr, acc, mag])
         if first:
             notes.append(f"started at the first {name} sample: {first} IMU samples before it")

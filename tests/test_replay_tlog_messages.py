@@ -199,3 +199,18 @@ def test_declination_from_parameter_position_or_option(tmp_path, motion):
     assert ev.prepared.declination.deg == -7.0
     est = replay.evaluate(replay.load(path), ["mahony:declination=0.3"])
     assert est.runs["mahony:declination=0.3"].spec.params["declination"] == 0.3
+
+
+def test_corrupt_records_are_skipped_and_counted(tmp_path, motion):
+    msgs = [highres(BOOT_US + round(motion.t[i] * 1e6), motion, i) for i in range(motion.n)]
+    path = tmp_path / "corrupt.tlog"
+    write_tlog(path, msgs)
+    data = bytearray(path.read_bytes())
+    record = len(data) // motion.n  # every HIGHRES_IMU record has the same size
+    data[100 * record + 20] ^= 0xFF  # a payload byte of sample 100: its CRC fails
+    data[200 * record:200 * record] = b"\x00garbage\xfd\x01"  # bytes between two records
+    path.write_bytes(bytes(data))
+    rec = replay.load(path)
+    assert rec.n == motion.n - 1  # only the corrupted sample is lost
+    assert 100 * 0.01 not in np.round(rec.t - rec.t[0], 6)
+    assert any("skipped 2 unreadable" in n for n in rec.notes)

@@ -46,6 +46,8 @@ REBOOT_JUMP_S = 1.0  # board time going back by more than this: the vehicle rebo
 SESSION_PAD_S = 1.0  # reference messages this close to a session's ends belong to it
 STAMP_SLACK_S = 10.0  # a stamp this far outside the IMU's time span is on another clock
 UINT16_UNKNOWN = 65535
+MAVLINK1_STX, MAVLINK2_STX = 0xFE, 0xFD
+STAMP_JUMP_US = 86_400_000_000  # consecutive arrival stamps a day apart: misframed record
 GPS_FIX_3D = 3
 
 
@@ -53,13 +55,16 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
          reference: str = "auto") -> Recording:
     if imu is not None and imu.upper() not in IMU_MESSAGES:
         raise ReplayInputError(f"unknown IMU message {imu!r}; valid: {list(IMU_MESSAGES)}")
-    messages = _collect(path)
+    messages, unreadable = _collect(path)
     imu_type, src = _pick_imu(messages, imu.upper() if imu else None, path)
     rows = [m for m in messages[imu_type] if (m.get_srcSystem(), m.get_srcComponent()) == src]
     if imu_type == "RAW_IMU":  # several IMUs share RAW_IMU, told apart by `id`
         ids = Counter(getattr(m, "id", 0) for m in rows)
         rows = [m for m in rows if getattr(m, "id", 0) == min(ids)]
     notes = [f"IMU {imu_type} from system {src[0]} component {src[1]}"]
+    if unreadable:
+        notes.append(f"skipped {unreadable} unreadable stretch(es) of the log (bad CRC, "
+                     f"cut frames or bytes between records)")
     warnings: list[str] = []
     profile_name = None
     if imu_type == "RAW_IMU":
@@ -141,30 +146,76 @@ def _longest_session(t: np.ndarray, arrival: np.ndarray
     return keep, window, note
 
 
-def _collect(path: Path) -> dict[str, list]:
-    """The messages replay uses, by type; each gets ``_order``, its position in the file."""
-    from pymavlink import mavutil
+def _collect(path: Path) -> tuple[dict[str, list], int]:
+    """The messages replay uses, by type, and how many unreadable stretches were skipped.
 
+    Each message gets ``_timestamp`` (arrival, s) and ``_order``, its record's position.
+
+    A tlog is records of an 8-byte big-endian arrival time in µs and one MAVLink frame.
+    Walking the records and decoding only the wanted message ids is 2-3x faster than
+    pymavlink's generic log reader, which decodes everything. A record that does not
+    parse (bad CRC, bytes lost) is skipped: the walk resumes at the next position that
+    looks like a record (a start byte after a time stamp close to the last good one).
+    """
+    from pymavlink.dialects.v20 import common
+
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ReplayInputError(f"{path}: cannot read ({exc.strerror})") from exc
     wanted = set(IMU_MESSAGES + REFERENCE_MESSAGES + VELOCITY_MESSAGES + OTHER_MESSAGES)
+    ids = {mid for mid, cls in common.mavlink_map.items() if cls.msgname in wanted}
+    mav = common.MAVLink(None)
     out: dict[str, list] = defaultdict(list)
-    try:
-        conn = mavutil.mavlink_connection(str(path), notimestamps=False)
-    except Exception as exc:
-        raise ReplayInputError(f"{path}: cannot open as a MAVLink log ({exc})") from exc
-    order = 0
-    try:
-        while True:
-            msg = conn.recv_match()
-            if msg is None:
-                break
-            kind = msg.get_type()
-            if kind in wanted:
-                msg._order = order
-                out[kind].append(msg)
-            order += 1
-    finally:
-        conn.close()
-    return out
+    i, order, size, last, bad = 0, 0, len(data), None, 0
+    while i + 16 <= size:
+        stamp = int.from_bytes(data[i:i + 8], "big")
+        frame = _frame(data, i + 8)
+        if frame is None or (last is not None and abs(stamp - last) > STAMP_JUMP_US):
+            bad += 1
+            i = _resync(data, i + 1, last)
+            continue
+        length, msgid = frame
+        end = i + 8 + length
+        if end > size:
+            break
+        if msgid in ids:
+            try:
+                msg = mav.decode(bytearray(data[i + 8:end]))
+            except Exception:  # pymavlink raises MAVError and struct errors on bad frames
+                bad += 1
+                i = _resync(data, i + 1, last)
+                continue
+            msg._timestamp = stamp * 1e-6
+            msg._order = order
+            out[msg.get_type()].append(msg)
+        last = stamp
+        order += 1
+        i = end
+    return out, bad
+
+
+def _frame(data: bytes, k: int) -> tuple[int, int] | None:
+    """(frame length, message id) of a MAVLink 1 or 2 frame starting at ``k``."""
+    if k + 10 > len(data):
+        return None
+    if data[k] == MAVLINK2_STX:
+        signed = 13 if data[k + 2] & 0x01 else 0
+        return 12 + data[k + 1] + signed, data[k + 7] | data[k + 8] << 8 | data[k + 9] << 16
+    if data[k] == MAVLINK1_STX:
+        return 8 + data[k + 1], data[k + 5]
+    return None
+
+
+def _resync(data: bytes, k: int, last: int | None) -> int:
+    """The next position from ``k`` where a record plausibly starts."""
+    while k + 16 <= len(data):
+        if data[k + 8] in (MAVLINK1_STX, MAVLINK2_STX):
+            stamp = int.from_bytes(data[k:k + 8], "big")
+            if last is None or abs(stamp - last) <= STAMP_JUMP_US:
+                return k
+        k += 1
+    return len(data)
 
 
 def _pick_imu(messages: dict[str, list], imu: str | None, path: Path) -> tuple[str, tuple]:

@@ -214,3 +214,30 @@ def test_corrupt_records_are_skipped_and_counted(tmp_path, motion):
     assert rec.n == motion.n - 1  # only the corrupted sample is lost
     assert 100 * 0.01 not in np.round(rec.t - rec.t[0], 6)
     assert any("skipped 2 unreadable" in n for n in rec.notes)
+
+
+def test_aiding_goes_to_the_estimators_through_one_function(tmp_path, motion):
+    """``aiding_kwargs`` hands the estimators exactly the aligned ``vel`` / ``vel_age``
+    slices when aiding is on, nothing otherwise; ``--aid velocity`` without velocity in
+    the log is refused."""
+    from dataclasses import replace
+
+    from replay.evaluate import aiding_kwargs, prepare
+
+    msgs = []
+    for i in range(motion.n):
+        us = BOOT_US + round(motion.t[i] * 1e6)
+        msgs.append(highres(us, motion, i))
+        if i % 10 == 5:
+            msgs.append(common.MAVLink_local_position_ned_message(us // 1000, 0, 0, 0,
+                                                                  1.0, 2.0, 3.0))
+    path = tmp_path / "aid.tlog"
+    write_tlog(path, msgs)
+    rec = replay.load(path)
+    prep = replace(prepare(rec), aid="velocity")
+    kw = aiding_kwargs(prep, slice(3, None))
+    np.testing.assert_array_equal(kw["vel"], rec.velocity.vel[3:])
+    np.testing.assert_array_equal(kw["vel_age"], rec.velocity.age[3:])
+    assert aiding_kwargs(prepare(rec, aid="none"), slice(0, None)) == {}
+    with pytest.raises(replay.ReplayInputError, match="--aid velocity: the log has no velocity"):
+        prepare(motion, aid="velocity")

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Installs attitude-bridge with its test tools into the current Python environment,
-# plus mosquitto (the MQTT broker the integration tests start) from Debian when root.
+# Installs attitude-bridge with its test tools and the report extra (bokeh, matplotlib)
+# into the current Python environment, plus mosquitto (the MQTT broker the integration
+# tests start) from Debian when root.
 set -euo pipefail
 cd "$(dirname "$0")"
 if ! command -v mosquitto >/dev/null 2>&1 && [ ! -x /usr/sbin/mosquitto ]; then
@@ -14,4 +15,4 @@ if ! command -v mosquitto >/dev/null 2>&1 && [ ! -x /usr/sbin/mosquitto ]; then
     fi
 fi
 python -m pip install -q --upgrade pip
-python -m pip install -q -e ".[test]"
+python -m pip install -q -e ".[test,report]"

@@ -29,7 +29,7 @@ from estimators import quat as Q
 from replay.align import estimate_lag
 from replay.emulator import simulate
 from replay.evaluate import EstimatorSpec, prepare, run_estimator
-from replay.report import save_png
+from replay.figures import save_png
 
 INITIAL_ROLL_ERROR_DEG = 30.0
 SETTLED_DEG = INITIAL_ROLL_ERROR_DEG / np.e  # one time constant of the correction

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from replay.evaluate import prepare
+from replay.figures import save_png, sweep_figure
 from replay.readers import load
-from replay.report import save_png, sweep_figure
 from replay.tune import ParamAxis, sweep
 
 DATA = Path(os.environ.get("ATTITUDE_BRIDGE_DATA",

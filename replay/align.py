@@ -61,7 +61,15 @@ def angles_for_lag(q: np.ndarray) -> np.ndarray:
 def estimate_lag(t: np.ndarray, q_est: np.ndarray, q_ref: np.ndarray,
                  valid: np.ndarray | None = None, max_lag_s: float = 1.0,
                  min_motion_deg: float = 1.0) -> float:
-    """Delay (s) of the estimate behind the reference, by cross-correlation.
+    """Delay (s) of the estimate behind the reference; NaN when not measurable
+    (:func:`measure_lag` says why)."""
+    return measure_lag(t, q_est, q_ref, valid, max_lag_s, min_motion_deg)[0]
+
+
+def measure_lag(t: np.ndarray, q_est: np.ndarray, q_ref: np.ndarray,
+                valid: np.ndarray | None = None, max_lag_s: float = 1.0,
+                min_motion_deg: float = 1.0) -> tuple[float, str]:
+    """(delay [s] of the estimate behind the reference, "" or why it is NaN).
 
     Both attitudes become roll / pitch / unwrapped yaw, resampled on a uniform grid at
     the median IMU step; the shift within ±``max_lag_s`` that minimises the variance of
@@ -75,18 +83,19 @@ def estimate_lag(t: np.ndarray, q_est: np.ndarray, q_ref: np.ndarray,
     ok = np.all(np.isfinite(a_est), axis=1) & np.all(np.isfinite(a_ref), axis=1)
     if valid is not None:
         ok &= valid
+    nan = float("nan")
     if ok.sum() < 16:
-        return float("nan")
+        return nan, "fewer than 16 scored samples"
     ts = t[ok]
     step = float(np.median(np.diff(t)))
     grid = np.arange(ts[0], ts[-1], step)
     if grid.shape[0] < 16:
-        return float("nan")
+        return nan, "scored span shorter than 16 IMU steps"
     est = np.stack([np.interp(grid, ts, a_est[ok, k]) for k in range(3)], axis=1)
     ref = np.stack([np.interp(grid, ts, a_ref[ok, k]) for k in range(3)], axis=1)
     est, ref = est - est.mean(axis=0), ref - ref.mean(axis=0)
     if np.degrees(ref.std(axis=0).max()) < min_motion_deg:
-        return float("nan")
+        return nan, f"reference moves less than {min_motion_deg:g}° (static): not observable"
     n = grid.shape[0]
     size = 1 << int(np.ceil(np.log2(2 * n)))
     spec = np.fft.rfft(est, size, axis=0) * np.conj(np.fft.rfft(ref, size, axis=0))
@@ -110,11 +119,13 @@ def estimate_lag(t: np.ndarray, q_est: np.ndarray, q_ref: np.ndarray,
     mse = (mean_sq - ((s_est - s_ref) / m) ** 2).sum(axis=1)
     k = int(np.argmin(mse))
     if k in (0, len(mse) - 1):  # at the window's edge: the true lag is beyond ±max_lag_s
-        return float("nan")
+        side = ">" if lags[k] > 0 else "< -"
+        return nan, (f"{side}{max_lag_s:g} s: best shift at the edge of the ±{max_lag_s:g} s "
+                     f"search (not a lag, or a longer one)")
     shift = float(lags[k])
     # parabola through the minimum and its neighbours
     y0, y1, y2 = mse[k - 1], mse[k], mse[k + 1]
     denom = y0 - 2.0 * y1 + y2
     if denom > 0:
         shift += 0.5 * (y0 - y2) / denom
-    return shift * step
+    return shift * step, ""

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
-import math
+import os
 import sys
 from pathlib import Path
 
@@ -12,6 +13,7 @@ from .dataset import ReplayInputError
 
 _REFERENCE_HELP = ("which reference to score against: auto (truth when the file has it, "
                    "else the autopilot's attitude), truth, autopilot")
+INTERRUPTED = 130  # exit code after Ctrl-C, as a shell reports SIGINT
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,15 +27,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--estimator", "-e", action="append", default=[], metavar="NAME[:k=v,...]",
                    help="estimator with optional parameters; repeat to compare several")
     p.add_argument("--report", type=Path, metavar="OUT.html",
-                   help="write a self-contained HTML report with figures")
+                   help="write a self-contained interactive HTML report (needs the "
+                        "'report' extra: bokeh)")
     p.add_argument("--json", type=Path, metavar="OUT.json", help="write the scores as JSON")
+    p.add_argument("--csv", type=Path, metavar="OUT.csv",
+                   help="write the time series (t, q and Euler per estimator, reference, "
+                        "errors, flags) for PlotJuggler or pandas")
+    p.add_argument("--png", type=Path, metavar="DIR",
+                   help="write the figures as PNG files into DIR (needs matplotlib)")
     _input_options(p)
     p.set_defaults(func=_replay)
 
     t = sub.add_parser(
         "tune", help="grid-search one shared parameter set over one or many files",
         description="Search a parameter grid for the set minimising the mean total RMSE "
-                    "over all files (one parameter set for all, as in BROAD).")
+                    "over all files (one parameter set for all, as in BROAD). Ctrl-C "
+                    "stops early and keeps the points done so far.")
     t.add_argument("files", type=Path, nargs="+", metavar="FILE")
     t.add_argument("--estimator", "-e", required=True, help="estimator name")
     t.add_argument("--param", "-p", action="append", default=[], required=True,
@@ -51,8 +60,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _input_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--board", default="ardupilot",
-                   help="RAW_IMU board profile for tlogs (imu.boards; default ardupilot)")
+    from imu.boards import PROFILES
+
+    p.add_argument("--board", default=None, choices=sorted(PROFILES),
+                   help="RAW_IMU board profile for tlogs (default: detected, the profile "
+                        "that gives 1 g at rest)")
     p.add_argument("--imu", default=None, help="tlog IMU message (HIGHRES_IMU, RAW_IMU, "
                    "SCALED_IMU, SCALED_IMU2, SCALED_IMU3; default: first present in that order)")
     p.add_argument("--reference", choices=("auto", "truth", "autopilot"), default="auto",
@@ -60,9 +72,15 @@ def _input_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--init", choices=("sensors", "reference"), default="sensors",
                    help="start estimators from the first acc+mag sample (default, BROAD "
                         "rule) or from the reference attitude")
+    p.add_argument("--declination-deg", type=float, default=None, metavar="DEG",
+                   help="magnetic declination, east positive (default: the vehicle's "
+                        "EKF2_MAG_DECL / COMPASS_DEC, else the World Magnetic Model at the "
+                        "log's position and date)")
+    p.add_argument("--aid", choices=("velocity", "none"), default=None,
+                   help="velocity aiding from the log (default: velocity when the log has it)")
 
 
-def _fail(command: str, exc: Exception) -> int:
+def _fail(command: str, exc: Exception | str) -> int:
     print(f"attitude-bridge {command}: error: {exc}", file=sys.stderr)
     return 2
 
@@ -73,49 +91,85 @@ def _load(path: Path, args: argparse.Namespace):
     return load(path, board=args.board, imu=args.imu, reference=args.reference)
 
 
+def check_output_file(path: Path | None, option: str) -> None:
+    """Refuse an output path before any work: its folder must exist and be writable."""
+    if path is None:
+        return
+    folder = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise ReplayInputError(f"{option} {path}: is a folder, expected a file name")
+    if not folder.is_dir():
+        raise ReplayInputError(f"{option} {path}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise ReplayInputError(f"{option} {path}: folder {folder} is not writable")
+
+
+def check_output_dir(path: Path | None, option: str) -> None:
+    """A folder to write into: it exists, or its parent does (it is created then)."""
+    if path is None:
+        return
+    if path.exists() and not path.is_dir():
+        raise ReplayInputError(f"{option} {path}: exists and is not a folder")
+    if not path.exists():
+        check_output_file(path, option)
+    elif not os.access(path, os.W_OK):
+        raise ReplayInputError(f"{option} {path}: folder is not writable")
+
+
+def require_module(module: str, option: str) -> None:
+    if importlib.util.find_spec(module) is None:
+        raise ReplayInputError(f"{option} needs {module}: pip install 'attitude-bridge[report]'")
+
+
 def _replay(args: argparse.Namespace) -> int:
     from estimators.spec import EstimatorSpec
 
     from .evaluate import evaluate
 
     try:
+        for path, option in ((args.report, "--report"), (args.json, "--json"),
+                             (args.csv, "--csv")):
+            check_output_file(path, option)
+        check_output_dir(args.png, "--png")
+        if args.report:
+            require_module("bokeh", "--report")
+        if args.png:
+            require_module("matplotlib", "--png")
         specs = [EstimatorSpec.parse(s) for s in args.estimator] or None
         rec = _load(args.file, args)
         if args.reference != "auto" and rec.reference is None:
             raise ReplayInputError(f"{args.file}: no {args.reference} attitude in this file")
         if args.init == "reference" and rec.reference is None:
             raise ReplayInputError(f"{args.file}: --init reference needs a reference attitude")
-        ev = evaluate(rec, specs, init=args.init)
+        ev = evaluate(rec, specs, init=args.init, declination_deg=args.declination_deg,
+                      aid=args.aid or "auto")
     except (ReplayInputError, ValueError) as exc:
         return _fail("replay", exc)
-    _print_table(ev)
-    if args.json:
-        args.json.write_text(json.dumps(ev.as_json(), indent=1), encoding="utf-8")
-    if args.report:
-        from .report import write_report
+    from .summary import print_summary
 
-        write_report([ev], args.report)
-        print(f"report: {args.report}")
+    print_summary(ev)
+    try:
+        if args.json:
+            args.json.write_text(json.dumps(ev.as_json(), indent=1), encoding="utf-8")
+            print(f"json: {args.json}")
+        if args.csv:
+            from .timeseries import write_csv
+
+            write_csv(ev, args.csv)
+            print(f"csv: {args.csv}")
+        if args.report:
+            from .report import write_report
+
+            write_report([ev], args.report)
+            print(f"report: {args.report}")
+        if args.png:
+            from .figures import write_pngs
+
+            for path in write_pngs(ev, args.png):
+                print(f"png: {path}")
+    except OSError as exc:  # disk full, permissions changed meanwhile
+        return _fail("replay", f"cannot write output: {exc}")
     return 0
-
-
-def _print_table(ev) -> None:
-    rec = ev.recording
-    ref = rec.reference
-    print(f"{rec.path}: {rec.format}, IMU {rec.source}, {rec.n} samples, {rec.duration:.1f} s "
-          f"at {rec.rate_hz:.1f} Hz; reference: "
-          + (f"{ref.kind} ({ref.source})" if ref else "none (nothing to score against)"))
-    for note in rec.notes:
-        print(f"  note: {note}")
-    if rec.cleanup.dropped:
-        print(f"  dropped IMU samples: {rec.cleanup}")
-    cols = ("total_deg", "heading_deg", "inclination_deg", "lag_s", "convergence_s")
-    width = max(12, *(len(k) for k in ev.scores))
-    print(f"{'estimator':<{width}} " + " ".join(f"{c:>15}" for c in cols))
-    for label, s in ev.scores.items():
-        vals = [getattr(s, c) for c in cols]
-        print(f"{label:<{width}} " + " ".join(
-            f"{v:15.3f}" if math.isfinite(v) else f"{'-':>15}" for v in vals))
 
 
 def _tune(args: argparse.Namespace) -> int:
@@ -125,34 +179,52 @@ def _tune(args: argparse.Namespace) -> int:
     from .tune import parse_param, sweep
 
     try:
+        check_output_file(args.out, "--out")
+        check_output_file(args.heatmap, "--heatmap")
+        if args.heatmap:
+            require_module("matplotlib", "--heatmap")
         axes = [parse_param(p) for p in args.param]
         fixed = EstimatorSpec.parse(f"{args.estimator}:{','.join(args.set)}").params
         prepared = []
         for path in args.files:
-            prep = prepare(_load(path, args))
+            prep = prepare(_load(path, args), declination_deg=args.declination_deg,
+                           aid=args.aid or "auto")
             if prep.q_ref is None or not prep.scored.any():
-                raise ReplayInputError(f"{path}: no reference attitude to tune against")
+                raise ReplayInputError(f"{path}: no reference attitude to tune against"
+                                       + (f" ({prep.unscored})" if prep.unscored else ""))
             prepared.append(prep)
         result = sweep(prepared, args.estimator, axes, fixed, jobs=args.jobs,
                        init=args.init, progress=not args.quiet)
-        best = result.best
+        done = int(result.done.sum())
+        if result.interrupted:
+            print(f"interrupted: {done} of {len(result.points)} parameter sets done",
+                  file=sys.stderr)
+        best = result.best if done else None
+    except KeyboardInterrupt:  # while loading, before any point was scored
+        print("attitude-bridge tune: interrupted before any parameter set was scored",
+              file=sys.stderr)
+        return INTERRUPTED
     except (ReplayInputError, ValueError) as exc:
         return _fail("tune", exc)
-    i = result.best_index
-    print(f"{len(result.points)} parameter sets x {len(prepared)} file(s) in "
-          f"{result.seconds:.1f} s")
-    print(f"best {args.estimator}: " + ", ".join(f"{k}={v:.6g}" for k, v in best.items())
-          + f"  mean total {result.mean_total[i]:.3f} deg (heading "
-          f"{result.heading[i].mean():.3f}, inclination {result.inclination[i].mean():.3f})"
-          + ("  [6D: minimised inclination]" if result.objective == "inclination" else ""))
-    for path, total in zip(result.files, result.total[i], strict=True):
-        print(f"  {Path(path).name}: total {total:.3f} deg")
-    if args.out:
-        (result.write_json if args.out.suffix.lower() == ".json" else result.write_csv)(args.out)
-        print(f"sweep: {args.out}")
-    if args.heatmap:
-        from .report import save_png, sweep_figure
+    print(f"{done} parameter sets x {len(prepared)} file(s) in {result.seconds:.1f} s")
+    if best is not None:
+        i = result.best_index
+        print(f"best {args.estimator}: " + ", ".join(f"{k}={v:.6g}" for k, v in best.items())
+              + f"  mean total {result.mean_total[i]:.3f} deg (heading "
+              f"{result.heading[i].mean():.3f}, inclination {result.inclination[i].mean():.3f})"
+              + ("  [6D: minimised inclination]" if result.objective == "inclination" else ""))
+        for path, total in zip(result.files, result.total[i], strict=True):
+            print(f"  {Path(path).name}: total {total:.3f} deg")
+    try:
+        if args.out:
+            (result.write_json if args.out.suffix.lower() == ".json"
+             else result.write_csv)(args.out)
+            print(f"sweep: {args.out}")
+        if args.heatmap and done:
+            from .figures import save_png, sweep_figure
 
-        save_png(sweep_figure(result), args.heatmap)
-        print(f"heatmap: {args.heatmap}")
-    return 0
+            save_png(sweep_figure(result), args.heatmap)
+            print(f"heatmap: {args.heatmap}")
+    except OSError as exc:
+        return _fail("tune", f"cannot write output: {exc}")
+    return INTERRUPTED if result.interrupted else 0

@@ -6,6 +6,8 @@ them (evaluation, plots, tuning) only sees a :class:`Recording`.
 
 from __future__ import annotations
 
+import datetime as _dt
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -13,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 REFERENCE_KINDS = ("truth", "autopilot")
+NORTH_KINDS = ("true", "magnetic")
 
 
 class ReplayInputError(ValueError):
@@ -47,12 +50,48 @@ class Reference:
     kind: str
     source: str  # where it came from, e.g. "vehicle_attitude_groundtruth"
     cleanup: TimeCleanup = field(default_factory=TimeCleanup)
+    # "true": heading relative to true north (simulators, autopilots that apply the
+    # declination); "magnetic": relative to the magnetic north the IMU sees (BROAD).
+    north: str = "true"
+    timing: str = ""  # how its time was obtained when not its own stamp (e.g. arrival)
 
     def __post_init__(self) -> None:
+        if self.north not in NORTH_KINDS:
+            raise ValueError(f"reference north must be one of {NORTH_KINDS}, got {self.north!r}")
         if self.kind not in REFERENCE_KINDS:
             raise ValueError(f"reference kind must be one of {REFERENCE_KINDS}, got {self.kind!r}")
         if self.q.shape != (self.t.shape[0], 4):
             raise ValueError(f"reference q must be ({self.t.shape[0]}, 4), got {self.q.shape}")
+
+
+@dataclass(frozen=True)
+class Position:
+    """Where the vehicle was (WGS-84), for the World Magnetic Model."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    source: str  # message or topic it came from
+
+
+@dataclass(frozen=True)
+class Velocity:
+    """World-frame (NED, true north) velocity aligned to the IMU samples.
+
+    The estimators' aiding contract: ``vel`` is NaN except at the IMU sample where a
+    measurement became available to the vehicle (a NaN component: that axis unknown,
+    e.g. the vertical from a GPS course and speed); ``age`` is the IMU sample's time
+    minus the instant the measurement was valid (>= 0, NaN where ``vel`` is NaN).
+    """
+
+    vel: np.ndarray  # (N, 3) m/s
+    age: np.ndarray  # (N,) s
+    source: str
+    placement: str  # how a measurement was put on an IMU sample (arrival / own stamp)
+
+    @property
+    def count(self) -> int:
+        return int(np.count_nonzero(np.any(np.isfinite(self.vel), axis=1)))
 
 
 @dataclass(frozen=True)
@@ -77,6 +116,13 @@ class Recording:
     score_mask: np.ndarray | None = None
     cleanup: TimeCleanup = field(default_factory=TimeCleanup)
     notes: tuple[str, ...] = ()  # human-readable remarks from the reader (dropped, trimmed)
+    warnings: tuple[str, ...] = ()  # things that make numbers doubtful (wrong board?)
+    board: str | None = None  # RAW_IMU board profile used, None when not applicable
+    params: Mapping[str, float] = field(default_factory=dict)  # the vehicle's parameters
+    position: Position | None = None
+    when: _dt.datetime | None = None  # when it was recorded (UTC), for the WMM
+    when_source: str = ""
+    velocity: Velocity | None = None
 
     def __post_init__(self) -> None:
         n = self.t.shape[0]
@@ -86,6 +132,9 @@ class Recording:
                 raise ValueError(f"{name} must be ({n}, 3), got {arr.shape}")
         if self.score_mask is not None and self.score_mask.shape != (n,):
             raise ValueError(f"score_mask must be ({n},), got {self.score_mask.shape}")
+        if self.velocity is not None and (self.velocity.vel.shape != (n, 3)
+                                          or self.velocity.age.shape != (n,)):
+            raise ValueError(f"velocity must be ({n}, 3) with age ({n},)")
 
     @property
     def n(self) -> int:

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import inspect
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -13,14 +14,19 @@ from estimators import metrics
 from estimators import quat as Q
 from estimators.spec import EstimatorSpec
 
-from .align import DEFAULT_MAX_GAP_S, estimate_lag, reference_at
-from .dataset import Recording
+from .align import DEFAULT_MAX_GAP_S, measure_lag, reference_at
+from .dataset import Recording, ReplayInputError
+from .declination import Declination, resolve
 
 #: Gyro-only integrators: left out of the default comparison (they only drift), still
 #: available by name with --estimator.
 GYRO_ONLY = frozenset({"euler", "dcm", "quaternion"})
 CONVERGED_DEG = 5.0  # convergence: total error below this ...
 CONVERGED_HOLD_S = 1.0  # ... for at least this long
+#: Below this IMU rate, gyro integration between samples misses most of the motion
+#: (a tlog's 3 Hz RAW_IMU): the estimators are not run at all.
+MIN_RATE_HZ = 20.0
+AID_CHOICES = ("auto", "velocity", "none")
 
 
 def default_specs() -> list[EstimatorSpec]:
@@ -37,17 +43,68 @@ class Prepared:
     recording: Recording
     q_ref: np.ndarray | None  # (N, 4) or None without reference
     scored: np.ndarray  # (N,) bool: reference known and inside the score mask
+    declination: Declination = field(default_factory=lambda: Declination(0.0, "none"))
+    aid: str = "none"  # "velocity": the recording's velocity goes to the estimators
+    aid_note: str = ""  # what aiding the log offers and what is done with it
+    unscored: str = ""  # why nothing can be scored ("" when something can)
 
 
-def prepare(rec: Recording, method: str = "slerp",
-            max_gap: float = DEFAULT_MAX_GAP_S) -> Prepared:
+def prepare(rec: Recording, method: str = "slerp", max_gap: float = DEFAULT_MAX_GAP_S,
+            declination_deg: float | None = None, aid: str = "auto") -> Prepared:
+    """Reference on the IMU times, scored samples, declination and aiding for ``rec``."""
+    dec = resolve(rec, declination_deg)
+    aid, aid_note = _choose_aid(rec, aid)
     if rec.reference is None:
-        return Prepared(rec, None, np.zeros(rec.n, dtype=bool))
+        return Prepared(rec, None, np.zeros(rec.n, dtype=bool), dec, aid, aid_note,
+                        "no reference attitude in the file: nothing to score against")
     q_ref = reference_at(rec.reference, rec.t, method, max_gap)
     scored = np.all(np.isfinite(q_ref), axis=1)
     if rec.score_mask is not None:
         scored &= rec.score_mask
-    return Prepared(rec, q_ref, scored)
+    why = ""
+    if not scored.any():
+        r = rec.reference
+        span = f"{r.t[0]:.1f}..{r.t[-1]:.1f} s" if r.t.size else "no samples"
+        why = (f"reference ({r.source}, {span}) does not overlap the IMU ({rec.t[0]:.1f}.."
+               f"{rec.t[-1]:.1f} s) with gaps under {max_gap:g} s")
+        if r.t.size and rec.score_mask is not None:
+            why = f"no sample with a reference inside the file's score mask; {why}"
+    return Prepared(rec, q_ref, scored, dec, aid, aid_note, why)
+
+
+def estimators_take_velocity() -> bool:
+    """Whether this version's estimators accept the ``vel`` / ``vel_age`` aiding input."""
+    from estimators.base import Estimator
+
+    return "vel" in inspect.signature(Estimator.run).parameters
+
+
+def _choose_aid(rec: Recording, aid: str) -> tuple[str, str]:
+    if aid not in AID_CHOICES:
+        raise ValueError(f"aid must be one of {AID_CHOICES}, got {aid!r}")
+    v = rec.velocity
+    if aid == "velocity" and v is None:
+        raise ReplayInputError(f"{rec.path}: --aid velocity: the log has no velocity "
+                               f"(tlog LOCAL_POSITION_NED, GLOBAL_POSITION_INT, GPS_RAW_INT; "
+                               f"ULog vehicle_local_position, vehicle_gps_position)")
+    if v is None:
+        return "none", "none: no velocity in the log"
+    ages = v.age[np.isfinite(v.age)]
+    offer = (f"velocity from {v.source} ({v.count} measurements, median age "
+             f"{1e3 * float(np.median(ages)):.0f} ms)")
+    if aid == "none":
+        return "none", f"none (--aid none); the log has {offer}"
+    if not estimators_take_velocity():
+        return "none", f"none: the log has {offer}, but this version's estimators take no aiding"
+    return "velocity", offer
+
+
+def aiding_kwargs(prep: Prepared, sl: slice) -> dict[str, np.ndarray]:
+    """The aiding keywords for ``Estimator.run`` over the samples ``sl`` (empty: none)."""
+    v = prep.recording.velocity
+    if prep.aid != "velocity" or v is None:
+        return {}
+    return {"vel": v.vel[sl], "vel_age": v.age[sl]}
 
 
 @dataclass(frozen=True)
@@ -78,12 +135,12 @@ def run_estimator(prep: Prepared, spec: EstimatorSpec, init: str = "sensors") ->
         q0 = prep.q_ref[start]
     elif init != "sensors":
         raise ValueError(f"init must be 'sensors' or 'reference', got {init!r}")
-    est = estimators.create(spec.name, rate_hz=rec.rate_hz, world=rec.world, q0=q0,
-                            **spec.params)
+    params = {"declination": prep.declination.rad, **spec.params}  # -e ...:declination= wins
+    est = estimators.create(spec.name, rate_hz=rec.rate_hz, world=rec.world, q0=q0, **params)
     sl = slice(start, None)
     began = time.perf_counter()
     res = est.run(rec.gyr[sl], rec.acc[sl], None if rec.mag is None else rec.mag[sl],
-                  dt=rec.dt[sl])
+                  dt=rec.dt[sl], **aiding_kwargs(prep, sl))
     seconds = time.perf_counter() - began
     q = np.full((rec.n, 4), np.nan)
     flags = np.zeros(rec.n, dtype=np.uint8)
@@ -113,9 +170,10 @@ class Score:
     skipped: int  # samples the estimator could not use at all
     run_s: float  # batch wall time
     six_d: bool = False  # no magnetometer used: judge on inclination only (BROAD rule)
+    reasons: dict[str, str] = field(default_factory=dict)  # column -> why it is NaN
 
-    def as_json(self) -> dict[str, float | int | None]:
-        """Plain dict with NaN as None (JSON has no NaN)."""
+    def as_json(self) -> dict:
+        """Plain dict with NaN as None (JSON has no NaN), ``reasons`` for the None ones."""
         return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
                 for k, v in asdict(self).items()}
 
@@ -137,27 +195,68 @@ def score(prep: Prepared, run: Run) -> Score:
     mag_rej = float(np.count_nonzero(run.flags[running] & estimators.base._core.F_MAG_REJECTED))
     nan = float("nan")
     if prep.q_ref is None or not keep.any():
+        why = prep.unscored or "the estimator never started on a scored sample"
         return Score(nan, nan, nan, nan, nan, nan, nan, nan, 0, acc_rej / n_run,
-                     mag_rej / n_run, run.counters.skipped, run.seconds, six_d)
+                     mag_rej / n_run, run.counters.skipped, run.seconds, six_d,
+                     {c: why for c in SCORE_COLUMNS})
     rms = metrics.rms_errors(run.q[keep], prep.q_ref[keep])
     euler = euler_errors(run.q[keep], prep.q_ref[keep])
     euler_rms = np.degrees(np.sqrt(np.mean(euler**2, axis=0)))
     errors = metrics.attitude_errors(run.q, prep.q_ref)
+    reasons: dict[str, str] = {}
+    lag, why = measure_lag(rec.t, run.q, prep.q_ref, keep)
+    if why:
+        reasons["lag_s"] = why
+    err_deg = np.degrees(errors.total)
+    err_deg[~keep] = np.nan
+    converged, why = convergence(rec.t, err_deg)
+    if why:
+        reasons["convergence_s"] = why
+    total, heading, yaw = rms.total_deg, rms.heading_deg, float(euler_rms[2])
+    if six_d:  # BROAD: without a magnetometer heading is not observable
+        total = heading = yaw = nan
+        why = "no magnetometer in the file: heading not observable (6D, see inclination)"
+        reasons.update(total_deg=why, heading_deg=why, yaw_deg=why)
+        if "convergence_s" not in reasons:
+            converged = nan  # measured on the total error, which includes heading
+            reasons["convergence_s"] = why
     return Score(
-        total_deg=rms.total_deg, heading_deg=rms.heading_deg,
-        inclination_deg=rms.inclination_deg,
-        roll_deg=float(euler_rms[0]), pitch_deg=float(euler_rms[1]), yaw_deg=float(euler_rms[2]),
-        lag_s=float(estimate_lag(rec.t, run.q, prep.q_ref, keep)),
-        convergence_s=convergence_time(rec.t, np.degrees(errors.total)),
+        total_deg=total, heading_deg=heading, inclination_deg=rms.inclination_deg,
+        roll_deg=float(euler_rms[0]), pitch_deg=float(euler_rms[1]), yaw_deg=yaw,
+        lag_s=float(lag), convergence_s=converged,
         samples=rms.samples, acc_rejected_frac=acc_rej / n_run,
         mag_rejected_frac=mag_rej / n_run, skipped=run.counters.skipped, run_s=run.seconds,
-        six_d=six_d)
+        six_d=six_d, reasons=reasons)
+
+
+SCORE_COLUMNS = ("total_deg", "heading_deg", "inclination_deg", "roll_deg", "pitch_deg",
+                 "yaw_deg", "lag_s", "convergence_s")
 
 
 def euler_errors(q_est: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
     """(N, 3) roll/pitch/yaw differences (rad) wrapped to (-pi, pi]."""
     d = Q.to_euler(q_est) - Q.to_euler(q_ref)
     return np.angle(np.exp(1j * d))
+
+
+def convergence(t: np.ndarray, err_deg: np.ndarray, threshold: float = CONVERGED_DEG,
+                hold_s: float = CONVERGED_HOLD_S) -> tuple[float, str]:
+    """(:func:`convergence_time`, "" or why it is NaN).
+
+    An error already below the threshold at the first scored sample says nothing about
+    the estimator (every estimator would show that sample's time): NaN, with the reason.
+    """
+    good = np.isfinite(err_deg)
+    if not good.any():
+        return float("nan"), "no scored sample"
+    value = convergence_time(t, err_deg, threshold, hold_s)
+    if not math.isfinite(value):
+        return value, f"never within {threshold:g}° for {hold_s:g} s"
+    first = float(t[good][0] - t[0])
+    if value <= first:
+        return float("nan"), (f"already within {threshold:g}° at the first scored sample "
+                              f"(t = {first:.2f} s): nothing to converge from")
+    return value, ""
 
 
 def convergence_time(t: np.ndarray, err_deg: np.ndarray, threshold: float = CONVERGED_DEG,
@@ -187,6 +286,7 @@ class Evaluation:
     prepared: Prepared
     runs: dict[str, Run]
     scores: dict[str, Score]
+    not_run: str = ""  # why the estimators were not run at all ("" when they were)
 
     @property
     def recording(self) -> Recording:
@@ -211,16 +311,35 @@ class Evaluation:
             "rate_hz": rec.rate_hz,
             "dropped_imu_samples": asdict(rec.cleanup),
             "notes": list(rec.notes),
+            "warnings": list(rec.warnings),
+            "board": rec.board,
+            "declination_deg": self.prepared.declination.deg,
+            "declination_source": self.prepared.declination.source,
+            "aiding": self.prepared.aid,
+            "aiding_note": self.prepared.aid_note,
+            "not_scored": self.prepared.unscored or None,
+            "not_run": self.not_run or None,
             "estimators": {label: s.as_json() for label, s in self.scores.items()},
         }
 
 
 def evaluate(rec: Recording, specs: list[EstimatorSpec | str] | None = None,
-             init: str = "sensors", method: str = "slerp") -> Evaluation:
-    """Run and score every estimator (default: :func:`default_specs`)."""
+             init: str = "sensors", method: str = "slerp",
+             declination_deg: float | None = None, aid: str = "auto",
+             min_rate_hz: float = MIN_RATE_HZ) -> Evaluation:
+    """Run and score every estimator (default: :func:`default_specs`).
+
+    Below ``min_rate_hz`` nothing is run (:attr:`Evaluation.not_run` says why): numbers
+    from a gyro sampled a few times a second would describe the sampling, not a filter.
+    """
     chosen = [EstimatorSpec.parse(s) if isinstance(s, str) else s
               for s in (specs or default_specs())]
-    prep = prepare(rec, method)
+    for spec in chosen:  # unknown names and parameters fail before any work
+        estimators.estimator_class(spec.name).make_params(**spec.params)
+    prep = prepare(rec, method, declination_deg=declination_deg, aid=aid)
+    if rec.rate_hz < min_rate_hz:
+        return Evaluation(prep, {}, {}, f"IMU at {rec.rate_hz:.1f} Hz is too slow to estimate "
+                                        f"attitude from (needs >= {min_rate_hz:g} Hz)")
     runs = {s.label: run_estimator(prep, s, init) for s in chosen}
     scores = {label: score(prep, r) for label, r in runs.items()}
     return Evaluation(prep, runs, scores)

@@ -1,258 +1,246 @@
-"""Figures (matplotlib PNG) and a single self-contained HTML report.
+"""The interactive HTML report: linked, zoomable Bokeh plots in one offline file.
 
-Figures follow the seed paper's comparison of the complementary and Kalman filters:
-attitude angles of every estimator over the reference, and the error over time; plus
-each estimator's rejection flags and, from ``tune``, parameter-sweep heatmaps.
+Like PX4 Flight Review (also Bokeh), every time plot of a file shares one time axis, so
+zooming into a manoeuvre in one panel zooms all of them; legends hide lines on click.
+BokehJS is inlined (``bokeh.resources.INLINE``): the file opens without a network.
+Contents per file: where the data came from (source, reference, declination used and
+why, aiding, board), the estimators' full parameters, the scores with the reason for
+every missing number, then attitude per axis with the reference (unwrapped), errors,
+gyro-bias estimates and |acc| / |mag| with each estimator's rejections.
 """
 
 from __future__ import annotations
 
-import base64
+import dataclasses
 import html
-import io
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")  # files only: no display on servers and in CI
-import matplotlib.pyplot as plt
 import numpy as np
-from matplotlib.figure import Figure
 
+import estimators
 from estimators import _core, metrics
-from estimators import quat as Q
 
 from .evaluate import Evaluation
+from .plotdata import decimation, plot_angles
+from .summary import COLUMNS
 
-MAX_POINTS = 6000  # per line: enough for the eye, keeps PNGs small and plotting fast
-ANGLE_NAMES = ("roll", "pitch", "yaw")
-ERROR_FLOOR_DEG = 0.01  # bottom of the log-scale error axes
+MAX_POINTS = 4000  # per line: keeps the file a few MB and the browser responsive
+ERROR_FLOOR_DEG = 0.01  # log-scale error axes: zero errors drawn here
+PLOT_WIDTH, PLOT_HEIGHT = 1000, 220
+TOOLS = "xpan,xwheel_zoom,box_zoom,reset,save"
+TITLE = "attitude-bridge replay"
 
 
-def _decimate(n: int) -> slice:
-    return slice(None, None, max(1, n // MAX_POINTS))
+def product_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("attitude-bridge")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
 
 
-def angles_figure(ev: Evaluation) -> Figure:
-    """Roll, pitch, yaw [deg] vs time: reference in black, one colour per estimator."""
-    rec = ev.recording
-    t = rec.t - rec.t[0]
-    sl = _decimate(rec.n)
-    fig, axes = plt.subplots(3, 1, figsize=(10, 7.5), sharex=True)
-    if ev.prepared.q_ref is not None:
-        ref = np.degrees(Q.to_euler(ev.prepared.q_ref))
-        for k, ax in enumerate(axes):
-            ax.plot(t[sl], ref[sl, k], color="black", lw=1.6,
-                    label=f"reference ({rec.reference.kind})")
+def _colour(k: int) -> str:
+    from bokeh.palettes import Category10_10
+
+    return Category10_10[k % len(Category10_10)]
+
+
+def _figure(title: str, y_label: str, x_range=None, y_log: bool = False):
+    from bokeh.plotting import figure
+
+    kwargs = {"x_range": x_range} if x_range is not None else {}
+    fig = figure(title=title, width=PLOT_WIDTH, height=PLOT_HEIGHT, tools=TOOLS,
+                 active_scroll="xwheel_zoom", x_axis_label="time [s]", y_axis_label=y_label,
+                 y_axis_type="log" if y_log else "linear", output_backend="webgl", **kwargs)
+    return fig
+
+
+def _finish(fig) -> None:
+    if fig.legend:
+        fig.legend.click_policy = "hide"
+        fig.legend.location = "top_left"
+        fig.legend.label_text_font_size = "8pt"
+        fig.legend.background_fill_alpha = 0.6
+
+
+def _line(fig, t: np.ndarray, y: np.ndarray, label: str, colour: str, width: float = 1.2):
+    """NaN-free decimated line (NaN breaks the line, as a gap should)."""
+    sl = decimation(len(t), MAX_POINTS)
+    fig.line(t[sl], y[sl], legend_label=label, line_color=colour, line_width=width)
+
+
+def _info_html(ev: Evaluation) -> str:
+    rec, prep = ev.recording, ev.prepared
+    ref = rec.reference
+    rows = [
+        ("file", f"{rec.path} ({rec.format})"),
+        ("IMU", f"{rec.source}: {rec.n} samples over {rec.duration:.1f} s at "
+                f"{rec.rate_hz:.1f} Hz; body {rec.body}, world {rec.world}"),
+        ("reference", "none" if ref is None else
+         f"{ref.kind} ({ref.source}), {ref.north} north" + (f"; {ref.timing}" if ref.timing
+                                                            else "")),
+        ("declination used", prep.declination.describe()),
+        ("aiding", prep.aid_note),
+        ("board profile", rec.board or "not applicable (SI units in the log)"),
+        ("attitude-bridge", product_version()),
+    ]
+    rows += [("note", n) for n in rec.notes]
+    rows += [("warning", w) for w in rec.warnings]
+    if ev.not_run:
+        rows.append(("not scored", ev.not_run + "; estimators not run"))
+    elif prep.unscored:
+        rows.append(("not scored", prep.unscored))
+    body = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>"
+                   for k, v in rows)
+    return f"<table class='info'>{body}</table>"
+
+
+def _params_html(ev: Evaluation) -> str:
+    """Every estimator's complete parameter set (defaults included), angles in degrees."""
+    rows = []
     for label, run in ev.runs.items():
-        e = np.degrees(Q.to_euler(run.q))
-        for k, ax in enumerate(axes):
-            ax.plot(t[sl], e[sl, k], lw=0.9, label=label)
-    for k, ax in enumerate(axes):
-        ax.set_ylabel(f"{ANGLE_NAMES[k]} [deg]")
-        ax.grid(alpha=0.3)
-    axes[0].legend(loc="upper right", fontsize=8, ncol=2)
-    axes[-1].set_xlabel("time [s]")
-    fig.suptitle(f"Attitude ({rec.world}, Z-Y-X Euler) — {rec.path.name}")
-    fig.tight_layout()
-    return fig
+        given = {"declination": ev.prepared.declination.rad, **run.spec.params}
+        params = dataclasses.asdict(
+            estimators.estimator_class(run.spec.name).make_params(**given))
+        text = ", ".join(_param_text(k, v) for k, v in params.items())
+        rows.append(f"<tr><th>{html.escape(label)}</th><td>{html.escape(text)}</td></tr>")
+    return f"<h3>Estimator parameters</h3><table class='info'>{''.join(rows)}</table>"
 
 
-def error_figure(ev: Evaluation) -> Figure:
-    """Total, inclination and heading error [deg] vs time per estimator (BROAD definitions)."""
-    rec = ev.recording
-    t = rec.t - rec.t[0]
-    sl = _decimate(rec.n)
-    fig, axes = plt.subplots(3, 1, figsize=(10, 7.5), sharex=True)
-    lows = [[], [], []]
-    if ev.prepared.q_ref is not None:
-        for label, run in ev.runs.items():
-            err = metrics.attitude_errors(run.q, ev.prepared.q_ref)
-            for k, values in enumerate((err.total, err.inclination, err.heading)):
-                deg = np.degrees(values[sl])
-                # log scale shows small and drifting errors together; floor the zeros
-                axes[k].plot(t[sl], np.maximum(deg, ERROR_FLOOR_DEG), lw=0.9, label=label)
-                if np.isfinite(deg).any():
-                    lows[k].append(np.nanpercentile(deg, 1))
-        if rec.score_mask is not None:  # shade the samples that are not scored
-            for ax in axes:
-                ax.fill_between(t[sl], 0, 1, where=~rec.score_mask[sl], color="0.85",
-                                transform=ax.get_xaxis_transform(), lw=0)
-    for ax, name, low in zip(axes, ("total", "inclination", "heading"), lows, strict=True):
-        ax.set_ylabel(f"{name} error [deg]")
-        ax.set_yscale("log")
-        ax.set_ylim(bottom=max(ERROR_FLOOR_DEG, 0.5 * min(low)) if low else ERROR_FLOOR_DEG)
-        ax.grid(alpha=0.3)
-    axes[0].legend(loc="upper right", fontsize=8, ncol=2)
-    axes[-1].set_xlabel("time [s]")
-    kind = rec.reference.kind if rec.reference else "no reference"
-    fig.suptitle(f"Error against {kind} — {rec.path.name}")
-    fig.tight_layout()
-    return fig
+def _param_text(name: str, value: object) -> str:
+    if name == "declination":
+        return f"declination_deg={math.degrees(float(value)):.3f}"
+    if isinstance(value, int | float):
+        return f"{name}={value:.6g}"
+    return f"{name}={value}"
 
 
-def flags_figure(ev: Evaluation) -> Figure:
-    """When each estimator rejected its accelerometer / magnetometer or skipped a sample."""
-    rec = ev.recording
-    t = rec.t - rec.t[0]
-    bits = ((_core.F_ACC_REJECTED, "acc rejected"), (_core.F_MAG_REJECTED, "mag rejected"),
-            (_core.F_SKIPPED, "skipped"), (_core.F_ACC_UNUSABLE, "acc unusable"))
-    labels = list(ev.runs)
-    fig, ax = plt.subplots(figsize=(10, 0.6 + 0.9 * max(1, len(labels))))
-    for row, label in enumerate(labels):
-        flags = ev.runs[label].flags
-        for j, (bit, name) in enumerate(bits):
-            on = (flags & bit) != 0
-            y = row + 0.2 * j - 0.3
-            ax.scatter(t[on][_decimate(int(on.sum()))], np.full(on.sum(), y)[
-                _decimate(int(on.sum()))], s=2, color=f"C{j}",
-                label=name if row == 0 else None)
-    ax.set_yticks(range(len(labels)), labels)
-    ax.set_ylim(-0.6, len(labels) - 0.4)
-    ax.set_xlim(t[0], t[-1])
-    ax.set_xlabel("time [s]")
-    ax.legend(loc="upper right", fontsize=8, ncol=4, markerscale=4)
-    ax.set_title("Estimator flags over time")
-    fig.tight_layout()
-    return fig
-
-
-def heatmap_figure(x_name: str, x: np.ndarray, y_name: str, y: np.ndarray,
-                   values: np.ndarray, title: str = "mean total RMSE [deg]") -> Figure:
-    """``values[i, j]`` at (x[j], y[i]) as a colour map, best cell marked."""
-    fig, ax = plt.subplots(figsize=(7, 5.5))
-    finite = np.isfinite(values)
-    vmax = np.nanpercentile(values, 95) if finite.any() else 1.0
-    mesh = ax.pcolormesh(_edges(x), _edges(y), values, shading="flat", cmap="viridis_r",
-                         vmax=vmax)
-    fig.colorbar(mesh, ax=ax, label=title)
-    if finite.any():
-        i, j = np.unravel_index(np.nanargmin(values), values.shape)
-        ax.plot(x[j], y[i], marker="*", color="red", ms=14,
-                label=f"best {x_name}={x[j]:.4g}, {y_name}={y[i]:.4g}: {values[i, j]:.3g}")
-        ax.legend(loc="upper right", fontsize=8)
-    ax.set_xlabel(x_name)
-    ax.set_ylabel(y_name)
-    ax.set_title(title)
-    fig.tight_layout()
-    return fig
-
-
-def _edges(c: np.ndarray) -> np.ndarray:
-    """Cell edges around centres (works for a single value too)."""
-    c = np.asarray(c, dtype=float)
-    if c.size == 1:
-        return np.array([c[0] - 0.5, c[0] + 0.5])
-    mid = 0.5 * (c[1:] + c[:-1])
-    return np.concatenate(([2 * c[0] - mid[0]], mid, [2 * c[-1] - mid[-1]]))
-
-
-def png_bytes(fig: Figure, dpi: int = 100) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
-    plt.close(fig)
-    return buf.getvalue()
-
-
-def save_png(fig: Figure, path: str | Path, dpi: int = 100) -> Path:
-    p = Path(path)
-    p.write_bytes(png_bytes(fig, dpi))
-    return p
-
-
-def evaluation_figures(ev: Evaluation) -> list[tuple[str, bytes]]:
-    """(caption, PNG) for one replayed file."""
-    figs = [("Attitude angles", angles_figure(ev))]
-    if ev.prepared.q_ref is not None:
-        figs.append(("Error over time", error_figure(ev)))
-    figs.append(("Flags", flags_figure(ev)))
-    return [(caption, png_bytes(fig)) for caption, fig in figs]
-
-
-def _fmt(v: float | int | None, digits: int = 3) -> str:
-    if v is None or (isinstance(v, float) and not np.isfinite(v)):
-        return "–"
-    return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
-
-
-def metrics_table(ev: Evaluation) -> str:
-    cols = ("total_deg", "heading_deg", "inclination_deg", "roll_deg", "pitch_deg",
-            "yaw_deg", "lag_s", "convergence_s", "acc_rejected_frac", "mag_rejected_frac",
-            "samples", "six_d")
-    head = "".join(f"<th>{c}</th>" for c in ("estimator", *cols))
+def _scores_html(ev: Evaluation) -> str:
+    if ev.not_run:
+        return f"<p><b>Not scored:</b> {html.escape(ev.not_run)}</p>"
+    head = "".join(f"<th>{html.escape(h)}</th>" for _, h, _, _ in COLUMNS)
+    extra = ("roll_deg", "pitch_deg", "yaw_deg", "acc_rejected_frac", "mag_rejected_frac",
+             "samples")
+    head += "".join(f"<th>{c}</th>" for c in extra)
+    notes: list[str] = []
     rows = []
     for label, s in ev.scores.items():
-        d = s.as_json()
-        rows.append(f"<tr><td>{html.escape(label)}</td>"
-                    + "".join(f"<td>{_fmt(d[c])}</td>" for c in cols) + "</tr>")
-    return f"<table><tr>{head}</tr>{''.join(rows)}</table>"
+        cells = []
+        for name, _, scale, fmt in COLUMNS:
+            v = getattr(s, name)
+            if math.isfinite(v):
+                cells.append(fmt.format(v * scale))
+            else:
+                reason = s.reasons.get(name, "not available")
+                if reason not in notes:
+                    notes.append(reason)
+                cells.append(f"<span title='{html.escape(reason)}'>"
+                             f"–({notes.index(reason) + 1})</span>")
+        for name in extra:
+            v = getattr(s, name)
+            cells.append("–" if isinstance(v, float) and not math.isfinite(v)
+                         else (f"{v:.3f}" if isinstance(v, float) else str(v)))
+        rows.append(f"<tr><th>{html.escape(label)}</th>"
+                    + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+    foot = "".join(f"<li>({k}) {html.escape(n)}</li>" for k, n in enumerate(notes, 1))
+    return (f"<h3>Scores</h3><table class='scores'><tr><th>estimator</th>{head}</tr>"
+            f"{''.join(rows)}</table><ul class='notes'>{foot}</ul>")
 
 
-def html_report(sections: Sequence[tuple[str, str, list[tuple[str, bytes]]]],
-                title: str = "attitude-bridge replay") -> str:
-    """One HTML page; each section is (heading, html body, [(caption, png)]).
+def _plots(ev: Evaluation) -> list:
+    rec, prep = ev.recording, ev.prepared
+    t = rec.t - rec.t[0]
+    figs: list = []
+    x_range = None
 
-    Images are embedded as ``data:image/png;base64`` URIs so the file is self-contained.
-    """
-    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}"
-             "</title><style>body{font-family:sans-serif;max-width:1100px;margin:auto}"
-             "table{border-collapse:collapse}td,th{border:1px solid #bbb;padding:2px 6px;"
-             "text-align:right}img{max-width:100%}</style></head><body>",
-             f"<h1>{html.escape(title)}</h1>"]
-    for heading, body, images in sections:
-        parts.append(f"<h2>{html.escape(heading)}</h2>{body}")
-        for caption, png in images:
-            data = base64.b64encode(png).decode("ascii")
-            parts.append(f"<figure><img alt='{html.escape(caption)}' "
-                         f"src='data:image/png;base64,{data}'><figcaption>"
-                         f"{html.escape(caption)}</figcaption></figure>")
-    parts.append("</body></html>")
-    return "\n".join(parts)
+    def new(title: str, y_label: str, y_log: bool = False):
+        nonlocal x_range
+        fig = _figure(title, y_label, x_range, y_log)
+        x_range = fig.x_range  # every later panel shares the first one's time axis
+        figs.append(fig)
+        return fig
+
+    ref, angles = plot_angles(ev)
+    for k, axis in enumerate(("roll", "pitch", "yaw")):
+        fig = new(f"{axis} ({rec.world}, Z-Y-X Euler, unwrapped)", f"{axis} [deg]")
+        if ref is not None:
+            _line(fig, t, ref[:, k], f"reference ({rec.reference.kind})", "black", 2.0)
+        for j, (label, e) in enumerate(angles.items()):
+            _line(fig, t, e[:, k], label, _colour(j))
+    if prep.q_ref is not None and ev.runs:
+        for name in ("total", "inclination", "heading"):
+            fig = new(f"{name} error against the {rec.reference.kind} (log scale)",
+                      f"{name} error [deg]", y_log=True)
+            for j, (label, run) in enumerate(ev.runs.items()):
+                err = getattr(metrics.attitude_errors(run.q, prep.q_ref), name)
+                deg = np.degrees(err)
+                deg[~prep.scored] = np.nan  # only what is scored
+                _line(fig, t, np.maximum(deg, ERROR_FLOOR_DEG), label, _colour(j))
+    if ev.runs:
+        for k, axis in enumerate("xyz"):
+            fig = new(f"gyro bias estimate, body {axis}", "bias [deg/s]")
+            for j, (label, run) in enumerate(ev.runs.items()):
+                _line(fig, t, np.degrees(run.bias[:, k]), label, _colour(j))
+    sensors = [("|acc|", "m/s²", rec.acc, _core.F_ACC_REJECTED)]
+    if rec.mag is not None:
+        sensors.append(("|mag|", "log units", rec.mag, _core.F_MAG_REJECTED))
+    for name, unit, data, bit in sensors:
+        norm = np.linalg.norm(data, axis=1)
+        fig = new(f"{name} with each estimator's rejections (markers)", f"{name} [{unit}]")
+        _line(fig, t, norm, name, "gray", 1.0)
+        for j, (label, run) in enumerate(ev.runs.items()):
+            on = np.flatnonzero((run.flags & bit) != 0)
+            on = on[decimation(len(on), MAX_POINTS)]
+            if on.size:
+                fig.scatter(t[on], norm[on], size=4, color=_colour(j), alpha=0.7,
+                            legend_label=f"{label} rejected")
+    if rec.velocity is not None:
+        fig = new(f"velocity aiding ({rec.velocity.source}; {prep.aid_note.split(':')[0]})",
+                  "velocity [m/s]")
+        v = rec.velocity.vel
+        for k, axis in enumerate(("north", "east", "down")):
+            ok = np.isfinite(v[:, k])
+            sl = decimation(int(ok.sum()), MAX_POINTS)
+            fig.scatter(t[ok][sl], v[ok, k][sl], size=3, color=_colour(k), legend_label=axis)
+    for fig in figs:
+        _finish(fig)
+    return figs
 
 
-def evaluation_section(ev: Evaluation) -> tuple[str, str, list[tuple[str, bytes]]]:
-    rec = ev.recording
-    ref = rec.reference
-    info = (f"<p>{html.escape(rec.format)} file, IMU {html.escape(rec.source)}, "
-            f"{rec.n} samples over {rec.duration:.1f} s ({rec.rate_hz:.1f} Hz), world "
-            f"{rec.world}; reference: "
-            + (f"{ref.kind} ({html.escape(ref.source)})" if ref else "none") + "</p>"
-            + "".join(f"<p><i>{html.escape(n)}</i></p>" for n in rec.notes))
-    return str(rec.path), info + metrics_table(ev), evaluation_figures(ev)
+def section(ev: Evaluation) -> list:
+    """Bokeh models for one replayed file."""
+    from bokeh.models import Div
+
+    head = Div(text=f"<h2>{html.escape(str(ev.recording.path))}</h2>"
+                    + _info_html(ev) + _scores_html(ev) + _params_html(ev),
+               width=PLOT_WIDTH)
+    return [head, *_plots(ev)]
+
+
+STYLE = ("<style>body{font-family:sans-serif;margin:1em auto;max-width:1040px}"
+         "table{border-collapse:collapse;margin:.4em 0}td,th{border:1px solid #bbb;"
+         "padding:2px 6px;font-size:9pt}table.scores td{text-align:right}"
+         "table.info th{text-align:left;white-space:nowrap}ul.notes{font-size:9pt}</style>")
+
+
+def html_report(evaluations: Sequence[Evaluation], title: str = TITLE) -> str:
+    """The whole report as one HTML string (BokehJS inlined, no external resource)."""
+    from bokeh.embed import file_html
+    from bokeh.layouts import column
+    from bokeh.models import Div
+    from bokeh.resources import INLINE
+
+    parts = [Div(text=STYLE + f"<h1>{html.escape(title)}</h1><p>attitude-bridge "
+                          f"{html.escape(product_version())}</p>", width=PLOT_WIDTH)]
+    for ev in evaluations:
+        parts += section(ev)
+    return file_html(column(*parts), INLINE, title)
 
 
 def write_report(evaluations: Sequence[Evaluation], path: str | Path) -> Path:
     p = Path(path)
-    p.write_text(html_report([evaluation_section(ev) for ev in evaluations]),
-                 encoding="utf-8")
+    p.write_text(html_report(evaluations), encoding="utf-8")
     return p
-
-
-def sweep_figure(sweep) -> Figure:
-    """Heatmap of a tune sweep over its first two parameters (best over any others),
-    or a line plot for a one-parameter sweep."""
-    grid = sweep.grid()
-    axes = sweep.axes
-    if len(axes) == 1:
-        fig, ax = plt.subplots(figsize=(7, 4.5))
-        ax.plot(axes[0].values, grid, marker="o")
-        j = sweep.best_index
-        ax.plot(axes[0].values[j], grid[j], marker="*", color="red", ms=14,
-                label=f"best {axes[0].name}={axes[0].values[j]:.4g}: {grid[j]:.3g}")
-        ax.set_xlabel(axes[0].name)
-        ax.set_ylabel(f"mean {sweep.objective} RMSE [deg]")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-        ax.set_title(f"{sweep.estimator}: sweep over {len(sweep.files)} file(s)")
-        fig.tight_layout()
-        return fig
-    values = grid.reshape(grid.shape[0], grid.shape[1], -1)
-    with np.errstate(all="ignore"):
-        best_rest = np.where(np.all(np.isnan(values), axis=2), np.nan,
-                             np.nanmin(np.where(np.isnan(values), np.inf, values), axis=2))
-    # grid[i, j] is (first, second) parameter; the heatmap wants rows = y = second.
-    return heatmap_figure(axes[0].name, axes[0].values, axes[1].name, axes[1].values,
-                          best_rest.T,
-                          title=f"{sweep.estimator}: mean {sweep.objective} RMSE [deg], "
-                                f"{len(sweep.files)} file(s)")

@@ -15,6 +15,7 @@ import json
 import math
 import multiprocessing as mp
 import os
+import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -75,6 +76,12 @@ class Sweep:
     inclination: np.ndarray  # (P, F)
     seconds: float
     objective: str = "total"  # "inclination" for 6D estimators/files (BROAD rule)
+    done: np.ndarray | None = None  # (P,) bool: scored (all True unless interrupted)
+    interrupted: bool = False  # stopped by Ctrl-C: only the ``done`` points are real
+
+    def __post_init__(self) -> None:
+        if self.done is None:
+            object.__setattr__(self, "done", np.ones(len(self.points), dtype=bool))
 
     @property
     def mean_total(self) -> np.ndarray:
@@ -88,7 +95,7 @@ class Sweep:
 
     @property
     def best_index(self) -> int:
-        m = self.mean_objective
+        m = np.where(self.done, self.mean_objective, np.nan)
         if not np.isfinite(m).any():
             raise ValueError("no grid point produced a finite score")
         return int(np.nanargmin(m))
@@ -103,12 +110,15 @@ class Sweep:
         return v.reshape([len(a.values) for a in self.axes])
 
     def write_csv(self, path: str | Path) -> None:
+        """One row per scored grid point (an interrupted sweep keeps the ones done)."""
         names = [a.name for a in self.axes]
         with Path(path).open("w", newline="", encoding="utf-8") as f:
             w = csv.writer(f)
             w.writerow([*names, "mean_total_deg", "mean_heading_deg", "mean_inclination_deg",
                         *(f"total_deg[{Path(p).name}]" for p in self.files)])
             for i, point in enumerate(self.points):
+                if not self.done[i]:
+                    continue
                 w.writerow([*(point[n] for n in names), self.mean_total[i],
                             self.heading[i].mean(), self.inclination[i].mean(),
                             *self.total[i]])
@@ -120,14 +130,17 @@ class Sweep:
         doc = {
             "estimator": self.estimator, "files": list(self.files), "fixed": self.fixed,
             "params": {a.name: a.values.tolist() for a in self.axes},
-            "objective": f"mean {self.objective} RMSE [deg]", "best": self.best,
-            "best_mean_total_deg": clean(self.mean_total[self.best_index]),
-            "best_mean_inclination_deg": clean(self.inclination[self.best_index].mean()),
-            "seconds": self.seconds,
+            "objective": f"mean {self.objective} RMSE [deg]",
+            "best": self.best if self.done.any() else None,
+            "best_mean_total_deg": (clean(self.mean_total[self.best_index])
+                                    if self.done.any() else None),
+            "best_mean_inclination_deg": (clean(self.inclination[self.best_index].mean())
+                                          if self.done.any() else None),
+            "seconds": self.seconds, "interrupted": self.interrupted,
             "points": [{"params": p, "mean_total_deg": clean(self.mean_total[i]),
                         "total_deg": [clean(v) for v in self.total[i]],
                         "inclination_deg": [clean(v) for v in self.inclination[i]]}
-                       for i, p in enumerate(self.points)],
+                       for i, p in enumerate(self.points) if self.done[i]],
         }
         Path(path).write_text(json.dumps(doc, indent=1), encoding="utf-8")
 
@@ -135,6 +148,11 @@ class Sweep:
 # Set in the parent before the pool forks; workers read it instead of receiving arrays.
 _PREPARED: list[Prepared] = []
 _TASK: tuple[str, dict[str, float], str] = ("", {}, "sensors")
+
+
+def _ignore_sigint() -> None:
+    """Pool workers leave Ctrl-C to the parent, which stops the pool and keeps results."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _score_point(index_params: tuple[int, dict[str, float]]) -> tuple[int, np.ndarray]:
@@ -179,7 +197,11 @@ class Progress:
 def sweep(prepared: Sequence[Prepared], estimator: str, axes: Sequence[ParamAxis],
           fixed: dict[str, float] | None = None, jobs: int | None = None,
           init: str = "sensors", progress: bool = True) -> Sweep:
-    """Score every grid point on every prepared file; ``jobs`` processes (default: cores)."""
+    """Score every grid point on every prepared file; ``jobs`` processes (default: cores).
+
+    Ctrl-C (KeyboardInterrupt) stops the sweep: the result has ``interrupted`` set and
+    ``done`` marks the points scored so far.
+    """
     global _PREPARED, _TASK
     fixed = dict(fixed or {})
     cls = estimators.estimator_class(estimator)
@@ -196,26 +218,40 @@ def sweep(prepared: Sequence[Prepared], estimator: str, axes: Sequence[ParamAxis
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(points)))
     bar = Progress(len(points)) if progress else None
     results = np.full((len(points), len(prepared), 3), np.nan)
+    done = np.zeros(len(points), dtype=bool)
     began = time.perf_counter()
     tasks = list(enumerate(points))
-    _score_point((0, points[0]))  # compile (or load the kernel cache) once, in the parent
-    if jobs == 1:
-        for task in tasks:
-            i, r = _score_point(task)
-            results[i] = r
-            if bar:
-                bar.advance()
-    else:
-        with mp.get_context("fork").Pool(jobs) as pool:
-            chunk = max(1, len(tasks) // (jobs * 8))
-            for i, r in pool.imap_unordered(_score_point, tasks, chunksize=chunk):
-                results[i] = r
+    interrupted = False
+    try:
+        i, r = _score_point(tasks[0])  # compile (or load the kernel cache) once, in the parent
+        results[i], done[i] = r, True
+        if bar:
+            bar.advance()
+        if jobs == 1:
+            for task in tasks[1:]:
+                i, r = _score_point(task)
+                results[i], done[i] = r, True
                 if bar:
                     bar.advance()
+        else:
+            with mp.get_context("fork").Pool(jobs, initializer=_ignore_sigint) as pool:
+                chunk = max(1, len(tasks) // (jobs * 8))
+                try:
+                    for i, r in pool.imap_unordered(_score_point, tasks[1:], chunksize=chunk):
+                        results[i], done[i] = r, True
+                        if bar:
+                            bar.advance()
+                except KeyboardInterrupt:
+                    pool.terminate()
+                    raise
+    except KeyboardInterrupt:
+        interrupted = True
+        if bar:
+            bar.stream.write("\n")
     seconds = time.perf_counter() - began
     _PREPARED = []
     six_d = any(is_six_d(p.recording, estimator) for p in prepared)
     return Sweep(estimator, tuple(axes), fixed,
                  tuple(str(p.recording.path) for p in prepared), points,
                  results[:, :, 0], results[:, :, 1], results[:, :, 2], seconds,
-                 "inclination" if six_d else "total")
+                 "inclination" if six_d else "total", done, interrupted)

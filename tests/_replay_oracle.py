@@ -32,12 +32,13 @@ def reference_on(t_ref: np.ndarray, q_ref: np.ndarray, t: np.ndarray
 
 def run_and_score(name: str, t: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
                   mag: np.ndarray | None, ref: Rotation, valid: np.ndarray,
-                  world: str = "NED") -> dict[str, float]:
+                  world: str = "NED", declination_deg: float = 0.0) -> dict[str, float]:
     """RMS total/heading/inclination [deg] and Euler-angle RMS of estimator ``name``."""
     dt = np.diff(t, prepend=np.nan)
     rate = 1.0 / np.median(np.diff(t))
     dt[0] = 1.0 / rate
-    res = estimators.run(name, gyr, acc, mag, rate_hz=rate, world=world, dt=dt)
+    res = estimators.run(name, gyr, acc, mag, rate_hz=rate, world=world, dt=dt,
+                         declination=np.radians(declination_deg))
     keep = valid & ((res.flags & 1) != 0)
     est = wxyz_to_rot(res.q[keep])
     err = (est * ref[keep].inv()).as_quat()  # x, y, z, w

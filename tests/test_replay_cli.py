@@ -119,3 +119,78 @@ def test_asking_for_missing_truth_is_an_error(data_dir, capsys):
     path = data_dir / "logs" / "pyulog_sample_log_small.ulg"  # real flight: no groundtruth
     assert main(["replay", str(path), "--reference", "truth", "-e", "mahony"]) == 2
     assert "no truth attitude" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("option", ["--report", "--json", "--csv"])
+def test_output_into_a_missing_folder_fails_before_the_replay(data_dir, tmp_path, capsys,
+                                                              option):
+    path = data_dir / "logs" / "pyulog_sample_log_small.ulg"
+    target = tmp_path / "no" / "such" / "dir" / "x.out"
+    assert main(["replay", str(path), "-e", "mahony", option, str(target)]) == 2
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1 and f"{option} {target}: folder" in err[0]
+    assert "does not exist" in err[0] and "Traceback" not in captured.err
+    assert captured.out == ""  # refused before reading the log, not after the whole replay
+
+
+def test_tune_output_into_a_missing_folder_fails_first(tmp_path, capsys):
+    rec = generate(SyntheticConfig(duration_s=2.0, seed=5))
+    path = tmp_path / "s.csv"
+    csv_format.write(path, rec.t, rec.gyr, rec.acc, rec.mag, rec.reference.q)
+    assert main(["tune", str(path), "-e", "mahony", "-p", "kp=1,2", "--out",
+                 str(tmp_path / "missing" / "sweep.csv"), "-q"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_replay_writes_csv_json_and_report(tmp_path, capsys):
+    rec = generate(SyntheticConfig(duration_s=4.0, seed=7))
+    path = tmp_path / "s.csv"
+    csv_format.write(path, rec.t, rec.gyr, rec.acc, rec.mag, rec.reference.q)
+    outs = {k: tmp_path / f"out.{k}" for k in ("csv", "json", "html")}
+    code = main(["replay", str(path), "-e", "mahony", "--declination-deg", "1.5",
+                 "--csv", str(outs["csv"]), "--json", str(outs["json"]),
+                 "--report", str(outs["html"]), "--png", str(tmp_path / "png")])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "declination: +1.50° (--declination-deg)" in out
+    doc = json.loads(outs["json"].read_text())
+    assert doc["declination_deg"] == 1.5 and doc["declination_source"] == "--declination-deg"
+    scores = doc["estimators"]["mahony"]
+    missing = {k for k, v in scores.items() if v is None}
+    assert missing == set(scores["reasons"])  # every null says why
+    assert outs["csv"].read_text().splitlines()[0].startswith("t,acc_norm,mag_norm")
+    assert "Bokeh" in outs["html"].read_text(encoding="utf-8")
+    assert len(list((tmp_path / "png").glob("*.png"))) == 3
+
+
+def test_ctrl_c_in_tune_keeps_the_partial_sweep(tmp_path):
+    """SIGINT while tune sweeps: exit 130, one line instead of a traceback, and the points
+    done so far in --out."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    rec = generate(SyntheticConfig(duration_s=30.0, seed=5))
+    data = tmp_path / "s.csv"
+    csv_format.write(data, rec.t, rec.gyr, rec.acc, rec.mag, rec.reference.q)
+    out = tmp_path / "sweep.csv"
+    cmd = [sys.executable, "-m", "bridge.cli", "tune", str(data), "-e", "mahony",
+           "-p", "kp=0.05:5:400", "--set", "ki=0", "-j", "2", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=os.path.dirname(os.path.dirname(__file__)))
+    deadline = time.monotonic() + 120
+    progress = ""
+    while time.monotonic() < deadline:  # wait until some grid points are done
+        progress += os.read(proc.stderr.fileno(), 4096).decode()
+        if any(f" {n}/400 " in progress for n in range(5, 400)):
+            break
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    stderr = progress + stderr
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr and "interrupted:" in stderr
+    rows = out.read_text().splitlines()
+    assert rows[0].startswith("kp,mean_total_deg") and 5 <= len(rows) - 1 < 400
+    assert "best mahony" in stdout

@@ -29,7 +29,8 @@ def assert_scores_match(score: replay.Score, oracle: dict[str, float]) -> None:
 def ulog_oracle(path) -> tuple[dict[str, float], str, int]:
     from pyulog import ULog
 
-    topics = {d.name: d.data for d in ULog(str(path)).data_list if d.multi_id == 0}
+    log = ULog(str(path))
+    topics = {d.name: d.data for d in log.data_list if d.multi_id == 0}
     sc = topics["sensor_combined"]
     t0 = int(sc["timestamp"][0])  # PX4 may use epoch µs: subtract in integers first
 
@@ -55,7 +56,10 @@ def ulog_oracle(path) -> tuple[dict[str, float], str, int]:
     q_ref = np.column_stack([att[f"q[{i}]"] for i in range(4)])
     ref, inside = reference_on(t_ref, q_ref, t)
     kind = "truth" if name.endswith("groundtruth") else "autopilot"
-    return run_and_score(ESTIMATOR, t, gyr, acc, mag, ref, inside), kind, len(t)
+    # PX4's own declination parameter [deg]: what replay applies (references are true north)
+    declination = log.initial_parameters["EKF2_MAG_DECL"]
+    return (run_and_score(ESTIMATOR, t, gyr, acc, mag, ref, inside,
+                          declination_deg=declination), kind, len(t))
 
 
 @pytest.mark.parametrize("name", [
@@ -72,6 +76,7 @@ def test_ulog_replay_matches_independent_scoring(data_dir, name):
     assert_scores_match(ev.scores[ESTIMATOR], oracle)
     # A static or slowly moving log: the filter agrees with PX4 / truth within degrees.
     assert ev.scores[ESTIMATOR].inclination_deg < 2.0
+    assert ev.prepared.declination.source == "vehicle parameter EKF2_MAG_DECL"
 
 
 def test_sitl_log_with_groundtruth_is_scored_against_truth(data_dir):
@@ -85,8 +90,12 @@ def test_tlog_replay_matches_independent_scoring(data_dir):
 
     path = data_dir / "logs" / "dronekit_flight_replay_flight.tlog"
     conn = mavutil.mavlink_connection(str(path))
-    imu, att = [], []
-    while (msg := conn.recv_match(type=["RAW_IMU", "ATTITUDE"])) is not None:
+    imu, att, dec = [], [], []
+    while (msg := conn.recv_match(type=["RAW_IMU", "ATTITUDE", "PARAM_VALUE"])) is not None:
+        if msg.get_type() == "PARAM_VALUE":
+            if msg.param_id == "COMPASS_DEC":
+                dec.append(msg.param_value)
+            continue
         (imu if msg.get_type() == "RAW_IMU" else att).append(msg)
     t_all = np.array([m.time_usec for m in imu]) / 1e6
     # The vehicle rebooted once (board time jumps back); the longer session is replayed.
@@ -103,13 +112,19 @@ def test_tlog_replay_matches_independent_scoring(data_dir):
     euler = np.array([[m.yaw, m.pitch, m.roll] for m in att])
     q_ref = Rotation.from_euler("ZYX", euler).as_quat()[:, [3, 0, 1, 2]]
     ref, inside = reference_on(t_ref, q_ref, t)
-    oracle = run_and_score(ESTIMATOR, t, gyr, acc, mag, ref, inside)
+    # ArduPilot's COMPASS_DEC is in radians
+    oracle = run_and_score(ESTIMATOR, t, gyr, acc, mag, ref, inside,
+                           declination_deg=np.degrees(dec[-1]))
 
     rec = replay.load(path)
-    assert rec.source == "RAW_IMU" and rec.n == len(t)
+    assert rec.source == "RAW_IMU" and rec.n == len(t) and rec.board == "ardupilot"
     np.testing.assert_allclose(rec.acc, acc)
-    ev = replay.evaluate(rec, [ESTIMATOR])
+    # At 2.9 Hz replay refuses to score by default, and says why ...
+    assert "too slow" in replay.evaluate(rec, [ESTIMATOR]).not_run
+    # ... but the alignment and scoring path still equals the independent one.
+    ev = replay.evaluate(rec, [ESTIMATOR], min_rate_hz=0.0)
     assert ev.reference_kind == "autopilot"
+    assert ev.prepared.declination.source == "vehicle parameter COMPASS_DEC"
     assert_scores_match(ev.scores[ESTIMATOR], oracle)
     # Level on the ground: the accelerometer reads about +1 g upward (-z in FRD).
     assert np.median(rec.acc[:20, 2]) == pytest.approx(-9.8, abs=0.5)

@@ -38,11 +38,12 @@ def detect_format(path: Path) -> str:
         f"MAVLink telemetry logs (.tlog), BROAD-style .npz and CSV (see replay/readers/csv.py)")
 
 
-def load(path: str | Path, fmt: str | None = None, board: str = "ardupilot",
+def load(path: str | Path, fmt: str | None = None, board: str | None = None,
          imu: str | None = None, reference: str = "auto") -> Recording:
     """Read a log or dataset file into a :class:`Recording`.
 
-    ``board`` names the RAW_IMU profile for tlogs (``imu.boards``); ``imu`` picks the
+    ``board`` names the RAW_IMU profile for tlogs (``imu.boards``; None: the one whose
+    accelerometer scale gives 1 g at rest); ``imu`` picks the
     IMU stream when a file has several (a tlog message name, or a ULog multi-instance
     ``sensor_combined`` is the only one). Errors are :class:`ReplayInputError` with the
     file name and what was expected.

@@ -30,13 +30,15 @@ def trim_before_first_mag(t: np.ndarray, mag: np.ndarray, columns: list[np.ndarr
     return first, t[first:], [c[first:] for c in columns]
 
 
-def make_reference(t: np.ndarray, q: np.ndarray, kind: str, source: str) -> Reference:
+def make_reference(t: np.ndarray, q: np.ndarray, kind: str, source: str,
+                   north: str = "true", timing: str = "") -> Reference:
     """A Reference with its time cleaned and its quaternions normalised (zero rows -> NaN)."""
     t, (q,), cleanup = clean_stream(np.asarray(t, float), np.asarray(q, float))
     norm = np.linalg.norm(q, axis=1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         q = np.where(norm > 1e-6, q / norm, np.nan)
-    return Reference(t=t, q=q, kind=kind, source=source, cleanup=cleanup)
+    return Reference(t=t, q=q, kind=kind, source=source, cleanup=cleanup, north=north,
+                     timing=timing)
 
 
 def require_imu(n: int, path: object, what: str) -> None:

@@ -4,6 +4,7 @@ Format (one header row of column names, then one row per IMU sample)::
 
     # world: NED          optional, NED (default) or ENU: the frame of the reference
     # reference: truth    optional, truth (default) or autopilot
+    # north: true         optional, true (default) or magnetic: the reference's north
     t,gx,gy,gz,ax,ay,az,mx,my,mz,qw,qx,qy,qz,score
     0.000,0.01,-0.02,0.00,0.1,0.2,-9.80,0.21,0.02,0.43,1,0,0,0,1
 
@@ -24,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import REFERENCE_KINDS, Recording, ReplayInputError
+from ..board import magnitude_warning
+from ..dataset import NORTH_KINDS, REFERENCE_KINDS, Recording, ReplayInputError
 from ._common import clean_stream, make_reference
 
 IMU_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
@@ -54,9 +56,11 @@ def read(path: Path) -> Recording:
 
     world = settings.get("world", "NED").upper()
     kind = settings.get("reference", "truth").lower()
-    if world not in ("NED", "ENU") or kind not in REFERENCE_KINDS:
-        raise ReplayInputError(f"{path}: world must be NED/ENU and reference one of "
-                               f"{REFERENCE_KINDS}, got {world!r}, {kind!r}")
+    north = settings.get("north", "true").lower()
+    if world not in ("NED", "ENU") or kind not in REFERENCE_KINDS or north not in NORTH_KINDS:
+        raise ReplayInputError(f"{path}: world must be NED/ENU, reference one of "
+                               f"{REFERENCE_KINDS} and north one of {NORTH_KINDS}, got "
+                               f"{world!r}, {kind!r}, {north!r}")
     t_raw = table[:, 0 if header[0] == "t" else header.index("t")]
     extra = [c for c in (cols(MAG_COLUMNS), cols(REF_COLUMNS), cols(("score",))) if c is not None]
     t, (gyr, acc, *rest), cleanup = clean_stream(
@@ -66,10 +70,11 @@ def read(path: Path) -> Recording:
     mag = rest.pop(0) if "mx" in header and all(c in header for c in MAG_COLUMNS) else None
     q = rest.pop(0) if all(c in header for c in REF_COLUMNS) else None
     score = rest.pop(0)[:, 0] > 0.5 if "score" in header else None
-    ref = None if q is None else make_reference(t, q, kind, "csv qw,qx,qy,qz")
+    ref = None if q is None else make_reference(t, q, kind, "csv qw,qx,qy,qz", north=north)
+    warning = magnitude_warning(acc, "the CSV's ax,ay,az")
     return Recording(path=path, format="csv", t=t, gyr=gyr, acc=acc, mag=mag, world=world,
                      body="FRD", source="csv", reference=ref, score_mask=score,
-                     cleanup=cleanup)
+                     cleanup=cleanup, warnings=(warning,) if warning else ())
 
 
 def _preamble(path: Path) -> tuple[dict[str, str], list[str], int]:

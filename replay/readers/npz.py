@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..board import magnitude_warning
 from ..dataset import Recording, ReplayInputError, TimeCleanup
 from ._common import make_reference
 
@@ -40,7 +41,10 @@ def read(path: Path) -> Recording:
     if gyr.ndim != 2 or gyr.shape[1] != 3 or gyr.shape[0] < 2:
         raise ReplayInputError(f"{path}: gyr must be (N>=2, 3), got {gyr.shape}")
     t = np.arange(gyr.shape[0]) / rate  # sample k is at k / rate
-    ref = None if q_ref is None else make_reference(t, q_ref, "truth", "quat_ref (optical)")
+    ref = None if q_ref is None else make_reference(t, q_ref, "truth", "quat_ref (optical)",
+                                                  north="magnetic")
+    warning = magnitude_warning(acc, "npz acc")
     return Recording(path=path, format="npz", t=t, gyr=gyr, acc=acc, mag=mag, world="ENU",
                      body="sensor", source="npz gyr/acc/mag", reference=ref,
-                     score_mask=movement, cleanup=TimeCleanup(kept=len(t)))
+                     score_mask=movement, cleanup=TimeCleanup(kept=len(t)),
+                     warnings=(warning,) if warning else ())

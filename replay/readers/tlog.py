@@ -1,66 +1,126 @@
 """MAVLink telemetry log (.tlog): IMU messages and attitude references, by their own clocks.
 
 IMU, in order of preference (or ``imu=`` to choose): HIGHRES_IMU (SI, gauss), RAW_IMU
-(integers whose meaning depends on the sender: a ``imu.boards`` profile, default
-``ardupilot`` = mG, mrad/s, mGauss in FRD), SCALED_IMU/2/3 (mG, mrad/s, mgauss, FRD).
+(integers whose meaning depends on the sender: an ``imu.boards`` profile, detected from
+gravity unless ``board=`` names one), SCALED_IMU/2/3 (mG, mrad/s, mgauss, FRD).
 References: HIL_STATE_QUATERNION is truth; ATTITUDE_QUATERNION, else ATTITUDE (Z-Y-X
 Euler), from the same vehicle component as the IMU is the autopilot's own estimate.
-Time is ``time_usec`` / ``time_boot_ms`` from the messages, never the log's arrival stamp.
+
+Time is ``time_usec`` / ``time_boot_ms`` from the messages. A message without a usable
+stamp (PX4 SITL sends HIL_STATE_QUATERNION with ``time_usec = 0``) gets the board time of
+the IMU message just before it in the file: same link, same sender thread. The log's
+8-byte arrival stamps cannot be mapped by a constant offset instead: the sender's
+clock and the recorder's drift apart (about 1 % for PX4 SITL) and arrive in bursts.
+Also read: the vehicle's parameters (PARAM_VALUE), its position and the date (for the
+declination) and its velocity (for aiding, see :mod:`replay.readers.velocity`).
 """
 
 from __future__ import annotations
 
+import datetime as _dt
+import math
 import os
 from collections import Counter, defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from estimators import quat as Q
 
-from ..dataset import Recording, Reference, ReplayInputError
+from ..board import choose_board, magnitude_warning
+from ..dataset import Position, Recording, Reference, ReplayInputError
 from ..timebase import sample_and_hold
 from ._common import clean_stream, make_reference
+from .velocity import VelocityRows, place_velocity
 
 os.environ["MAVLINK20"] = "1"
 
 IMU_MESSAGES = ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")
 REFERENCE_MESSAGES = ("HIL_STATE_QUATERNION", "ATTITUDE_QUATERNION", "ATTITUDE")
+VELOCITY_MESSAGES = ("LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "GPS_RAW_INT")
+OTHER_MESSAGES = ("PARAM_VALUE", "SYSTEM_TIME", "GPS_GLOBAL_ORIGIN", "HOME_POSITION")
 G = 9.80665
 HIGHRES_MAG_BITS = 0x1C0  # fields_updated bits 6..8: xmag, ymag, zmag
 REBOOT_JUMP_S = 1.0  # board time going back by more than this: the vehicle rebooted
 SESSION_PAD_S = 1.0  # reference messages this close to a session's ends belong to it
+STAMP_SLACK_S = 10.0  # a stamp this far outside the IMU's time span is on another clock
+UINT16_UNKNOWN = 65535
+MAVLINK1_STX, MAVLINK2_STX = 0xFE, 0xFD
+STAMP_JUMP_US = 86_400_000_000  # consecutive arrival stamps a day apart: misframed record
+GPS_FIX_3D = 3
 
 
-def read(path: Path, board: str = "ardupilot", imu: str | None = None,
+def read(path: Path, board: str | None = None, imu: str | None = None,
          reference: str = "auto") -> Recording:
-    from imu.boards import board_profile
-
-    profile = board_profile(board)
     if imu is not None and imu.upper() not in IMU_MESSAGES:
         raise ReplayInputError(f"unknown IMU message {imu!r}; valid: {list(IMU_MESSAGES)}")
-    messages = _collect(path)
+    messages, unreadable = _collect(path)
     imu_type, src = _pick_imu(messages, imu.upper() if imu else None, path)
     rows = [m for m in messages[imu_type] if (m.get_srcSystem(), m.get_srcComponent()) == src]
     if imu_type == "RAW_IMU":  # several IMUs share RAW_IMU, told apart by `id`
         ids = Counter(getattr(m, "id", 0) for m in rows)
         rows = [m for m in rows if getattr(m, "id", 0) == min(ids)]
-    t, gyr, acc, mag = _imu_arrays(imu_type, rows, profile)
-    notes = [f"IMU {imu_type} from system {src[0]} component {src[1]}"
-             + (f" (board profile {profile.name})" if imu_type == "RAW_IMU" else "")]
+    notes = [f"IMU {imu_type} from system {src[0]} component {src[1]}"]
+    if unreadable:
+        notes.append(f"skipped {unreadable} unreadable stretch(es) of the log (bad CRC, "
+                     f"cut frames or bytes between records)")
+    warnings: list[str] = []
+    profile_name = None
+    if imu_type == "RAW_IMU":
+        choice = choose_board(_fields(rows, "xacc", "yacc", "zacc"), board)
+        profile_name = choice.name
+        notes.append(choice.note())
+        if (w := choice.warning()) is not None:
+            warnings.append(w)
+    t, gyr, acc, mag = _imu_arrays(imu_type, rows, profile_name)
+    if imu_type != "RAW_IMU" and (w := magnitude_warning(acc, imu_type)) is not None:
+        warnings.append(w)
     keep, window, note = _longest_session(t, np.array([m._timestamp for m in rows]))
     if note:
         notes.append(note)
+    clock = BoardClock(np.array([m._order for m in rows])[keep], t[keep])
     t, gyr, acc, mag = t[keep], gyr[keep], acc[keep], mag[keep]
     t, (gyr, acc, mag), cleanup = clean_stream(t, gyr, acc, mag)
     if len(t) < 2:
         raise ReplayInputError(f"{path}: fewer than 2 usable {imu_type} samples")
     in_session = {k: [m for m in v if window[0] <= m._timestamp <= window[1]]
                   for k, v in messages.items()}
-    ref = _reference(in_session, src, reference)
+    ref = _reference(in_session, src, reference, clock)
+    when, when_source = _date(in_session, src)
+    velocity = place_velocity(_velocity_rows(in_session, src, clock), t)
     return Recording(path=path, format="tlog", t=t, gyr=gyr, acc=acc,
                      mag=mag if np.isfinite(mag).any() else None, world="NED", body="FRD",
-                     source=imu_type, reference=ref, cleanup=cleanup, notes=tuple(notes))
+                     source=imu_type, reference=ref, cleanup=cleanup, notes=tuple(notes),
+                     warnings=tuple(warnings), board=profile_name,
+                     params=_params(messages, src), position=_position(in_session, src),
+                     when=when, when_source=when_source, velocity=velocity)
+
+
+@dataclass(frozen=True)
+class BoardClock:
+    """Board time of the IMU message preceding any message in the file.
+
+    ``order``: file positions of the session's IMU messages (increasing); ``t``: their
+    board times. A message without a usable stamp of its own was sent after that IMU
+    message by the same sender, so that IMU sample's time is the closest honest bound.
+    """
+
+    order: np.ndarray
+    t: np.ndarray
+
+    def preceding(self, order: np.ndarray) -> np.ndarray:
+        running = np.maximum.accumulate(self.t) if self.t.size else self.t
+        idx = np.searchsorted(self.order, order, side="right") - 1
+        out = np.full(np.shape(order), np.nan)
+        ok = idx >= 0
+        out[ok] = running[idx[ok]]
+        return out
+
+    def usable(self, stamps: np.ndarray) -> np.ndarray:
+        """Which stamps are on this board clock: positive and near the IMU's span."""
+        lo, hi = np.min(self.t) - STAMP_SLACK_S, np.max(self.t) + STAMP_SLACK_S
+        return np.isfinite(stamps) & (stamps > 0) & (stamps >= lo) & (stamps <= hi)
 
 
 def _longest_session(t: np.ndarray, arrival: np.ndarray
@@ -68,8 +128,8 @@ def _longest_session(t: np.ndarray, arrival: np.ndarray
     """Keep the longest stretch between vehicle reboots (board time jumping back > 1 s).
 
     Boot times of two sessions overlap, so mixing them would pair IMU samples with the
-    attitude of another flight. The log's arrival stamps (used only here, never as sample
-    time) tell which reference messages belong to the chosen session.
+    attitude of another flight. The log's arrival stamps tell which other messages
+    belong to the chosen session.
     """
     resets = np.flatnonzero(np.diff(t) < -REBOOT_JUMP_S) + 1
     bounds = np.concatenate(([0], resets, [len(t)]))
@@ -86,26 +146,76 @@ def _longest_session(t: np.ndarray, arrival: np.ndarray
     return keep, window, note
 
 
-def _collect(path: Path) -> dict[str, list]:
-    from pymavlink import mavutil
+def _collect(path: Path) -> tuple[dict[str, list], int]:
+    """The messages replay uses, by type, and how many unreadable stretches were skipped.
 
-    wanted = set(IMU_MESSAGES + REFERENCE_MESSAGES)
+    Each message gets ``_timestamp`` (arrival, s) and ``_order``, its record's position.
+
+    A tlog is records of an 8-byte big-endian arrival time in µs and one MAVLink frame.
+    Walking the records and decoding only the wanted message ids is 2-3x faster than
+    pymavlink's generic log reader, which decodes everything. A record that does not
+    parse (bad CRC, bytes lost) is skipped: the walk resumes at the next position that
+    looks like a record (a start byte after a time stamp close to the last good one).
+    """
+    from pymavlink.dialects.v20 import common
+
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ReplayInputError(f"{path}: cannot read ({exc.strerror})") from exc
+    wanted = set(IMU_MESSAGES + REFERENCE_MESSAGES + VELOCITY_MESSAGES + OTHER_MESSAGES)
+    ids = {mid for mid, cls in common.mavlink_map.items() if cls.msgname in wanted}
+    mav = common.MAVLink(None)
     out: dict[str, list] = defaultdict(list)
-    try:
-        conn = mavutil.mavlink_connection(str(path), notimestamps=False)
-    except Exception as exc:
-        raise ReplayInputError(f"{path}: cannot open as a MAVLink log ({exc})") from exc
-    try:
-        while True:
-            msg = conn.recv_match()
-            if msg is None:
-                break
-            kind = msg.get_type()
-            if kind in wanted:
-                out[kind].append(msg)
-    finally:
-        conn.close()
-    return out
+    i, order, size, last, bad = 0, 0, len(data), None, 0
+    while i + 16 <= size:
+        stamp = int.from_bytes(data[i:i + 8], "big")
+        frame = _frame(data, i + 8)
+        if frame is None or (last is not None and abs(stamp - last) > STAMP_JUMP_US):
+            bad += 1
+            i = _resync(data, i + 1, last)
+            continue
+        length, msgid = frame
+        end = i + 8 + length
+        if end > size:
+            break
+        if msgid in ids:
+            try:
+                msg = mav.decode(bytearray(data[i + 8:end]))
+            except Exception:  # pymavlink raises MAVError and struct errors on bad frames
+                bad += 1
+                i = _resync(data, i + 1, last)
+                continue
+            msg._timestamp = stamp * 1e-6
+            msg._order = order
+            out[msg.get_type()].append(msg)
+        last = stamp
+        order += 1
+        i = end
+    return out, bad
+
+
+def _frame(data: bytes, k: int) -> tuple[int, int] | None:
+    """(frame length, message id) of a MAVLink 1 or 2 frame starting at ``k``."""
+    if k + 10 > len(data):
+        return None
+    if data[k] == MAVLINK2_STX:
+        signed = 13 if data[k + 2] & 0x01 else 0
+        return 12 + data[k + 1] + signed, data[k + 7] | data[k + 8] << 8 | data[k + 9] << 16
+    if data[k] == MAVLINK1_STX:
+        return 8 + data[k + 1], data[k + 5]
+    return None
+
+
+def _resync(data: bytes, k: int, last: int | None) -> int:
+    """The next position from ``k`` where a record plausibly starts."""
+    while k + 16 <= len(data):
+        if data[k + 8] in (MAVLINK1_STX, MAVLINK2_STX):
+            stamp = int.from_bytes(data[k:k + 8], "big")
+            if last is None or abs(stamp - last) <= STAMP_JUMP_US:
+                return k
+        k += 1
+    return len(data)
 
 
 def _pick_imu(messages: dict[str, list], imu: str | None, path: Path) -> tuple[str, tuple]:
@@ -118,54 +228,75 @@ def _pick_imu(messages: dict[str, list], imu: str | None, path: Path) -> tuple[s
     return kind, sources.most_common(1)[0][0]
 
 
-def _imu_arrays(kind: str, rows: list, profile) -> tuple[np.ndarray, ...]:
-    def fields(*names: str) -> np.ndarray:
-        return np.array([[getattr(m, n) for n in names] for m in rows], dtype=float)
+def _fields(rows: list, *names: str) -> np.ndarray:
+    return np.array([[getattr(m, n) for n in names] for m in rows], dtype=float)
 
+
+def _imu_arrays(kind: str, rows: list, board: str | None) -> tuple[np.ndarray, ...]:
     gyro_names = ("xgyro", "ygyro", "zgyro")
     acc_names = ("xacc", "yacc", "zacc")
     mag_names = ("xmag", "ymag", "zmag")
     if kind == "HIGHRES_IMU":
-        t = fields("time_usec")[:, 0] * 1e-6
-        gyr, acc, mag = fields(*gyro_names), fields(*acc_names), fields(*mag_names)
-        updated = fields("fields_updated")[:, 0].astype(np.int64)
+        t = _fields(rows, "time_usec")[:, 0] * 1e-6
+        gyr, acc, mag = (_fields(rows, *gyro_names), _fields(rows, *acc_names),
+                         _fields(rows, *mag_names))
+        updated = _fields(rows, "fields_updated")[:, 0].astype(np.int64)
+        # Unset fields are 0, not "no change": hold the last real magnetometer reading.
         has_mag = (updated & HIGHRES_MAG_BITS) == HIGHRES_MAG_BITS
-        if has_mag.any() and not has_mag.all():  # hold the last real magnetometer reading
+        if has_mag.any() and not has_mag.all():
             mag = sample_and_hold(t[has_mag], mag[has_mag], t)
         elif not has_mag.any():
             mag = np.full_like(mag, np.nan)
         return t, gyr, acc, mag
     if kind == "RAW_IMU":
-        t = fields("time_usec")[:, 0] * 1e-6
-        return (t, profile.gyro(fields(*gyro_names)), profile.accel(fields(*acc_names)),
-                profile.mag(fields(*mag_names)))
+        from imu.boards import board_profile
+
+        profile = board_profile(board or "ardupilot")
+        t = _fields(rows, "time_usec")[:, 0] * 1e-6
+        return (t, profile.gyro(_fields(rows, *gyro_names)),
+                profile.accel(_fields(rows, *acc_names)), profile.mag(_fields(rows, *mag_names)))
     # SCALED_IMU/2/3: mrad/s, mG, mgauss, FRD (MAVLink common.xml)
-    t = fields("time_boot_ms")[:, 0] * 1e-3
-    return (t, fields(*gyro_names) * 1e-3, fields(*acc_names) * 1e-3 * G,
-            fields(*mag_names) * 1e-3)
+    t = _fields(rows, "time_boot_ms")[:, 0] * 1e-3
+    return (t, _fields(rows, *gyro_names) * 1e-3, _fields(rows, *acc_names) * 1e-3 * G,
+            _fields(rows, *mag_names) * 1e-3)
 
 
-def _reference(messages: dict[str, list], src: tuple, reference: str) -> Reference | None:
+def _message_times(rows: list, field: str, scale: float, clock: BoardClock
+                   ) -> tuple[np.ndarray, str]:
+    """Each message's own time where it is on the board clock, else its arrival's."""
+    own = np.array([getattr(m, field) for m in rows], dtype=float) * scale
+    ok = clock.usable(own)
+    if ok.all():
+        return own, ""
+    arrival = clock.preceding(np.array([m._order for m in rows]))
+    how = (f"{field} unusable ({np.count_nonzero(~ok)} of {len(rows)}): aligned by arrival "
+           f"(board time of the IMU message before it)")
+    return np.where(ok, own, arrival), how
+
+
+def _reference(messages: dict[str, list], src: tuple, reference: str,
+               clock: BoardClock) -> Reference | None:
     sysid = src[0]
     if reference in ("auto", "truth"):
         rows = [m for m in messages.get("HIL_STATE_QUATERNION", []) if m.get_srcSystem() == sysid]
         if rows:
-            t = np.array([m.time_usec for m in rows], dtype=float) * 1e-6
+            t, how = _message_times(rows, "time_usec", 1e-6, clock)
             q = np.array([m.attitude_quaternion for m in rows], dtype=float)
-            return make_reference(t, q, "truth", "HIL_STATE_QUATERNION")
+            return make_reference(t, q, "truth", "HIL_STATE_QUATERNION", timing=how)
         if reference == "truth":
             return None
     for kind in ("ATTITUDE_QUATERNION", "ATTITUDE"):
         rows = _same_component(messages.get(kind, []), src)
         if not rows:
             continue
-        t = np.array([m.time_boot_ms for m in rows], dtype=float) * 1e-3
+        t, how = _message_times(rows, "time_boot_ms", 1e-3, clock)
         if kind == "ATTITUDE_QUATERNION":
             q = np.array([[m.q1, m.q2, m.q3, m.q4] for m in rows], dtype=float)
         else:
             e = np.array([[m.roll, m.pitch, m.yaw] for m in rows], dtype=float)
             q = Q.from_euler(e[:, 0], e[:, 1], e[:, 2])
-        return make_reference(t, q, "autopilot", kind)
+        # PX4 and ArduPilot both apply their declination: their yaw is from true north.
+        return make_reference(t, q, "autopilot", kind, timing=how)
     return None
 
 
@@ -173,3 +304,84 @@ def _same_component(rows: list, src: tuple) -> list:
     """The IMU's own autopilot component; else any component of that vehicle."""
     same = [m for m in rows if (m.get_srcSystem(), m.get_srcComponent()) == src]
     return same or [m for m in rows if m.get_srcSystem() == src[0]]
+
+
+def _params(messages: dict[str, list], src: tuple) -> dict[str, float]:
+    """The vehicle's parameters as last reported (PARAM_VALUE), by name: from the whole
+    log, since a ground station downloads them once, often before a reboot."""
+    out: dict[str, float] = {}
+    for m in messages.get("PARAM_VALUE", []):
+        if m.get_srcSystem() == src[0]:
+            name = m.param_id.rstrip("\x00") if isinstance(m.param_id, str) else str(m.param_id)
+            out[name] = float(m.param_value)
+    return out
+
+
+def _position(messages: dict[str, list], src: tuple) -> Position | None:
+    """The vehicle's position from the first message type that has a real one."""
+    def own(kind: str) -> list:
+        return [m for m in messages.get(kind, []) if m.get_srcSystem() == src[0]]
+
+    candidates = [
+        ("GPS_RAW_INT", [(m.lat, m.lon, m.alt) for m in own("GPS_RAW_INT")
+                         if m.fix_type >= 2 and (m.lat or m.lon)]),
+        ("GLOBAL_POSITION_INT", [(m.lat, m.lon, m.alt) for m in own("GLOBAL_POSITION_INT")
+                                 if m.lat or m.lon]),
+        ("HIL_STATE_QUATERNION", [(m.lat, m.lon, m.alt) for m in own("HIL_STATE_QUATERNION")
+                                  if m.lat or m.lon]),
+        ("GPS_GLOBAL_ORIGIN", [(m.latitude, m.longitude, m.altitude)
+                               for m in own("GPS_GLOBAL_ORIGIN") if m.latitude or m.longitude]),
+        ("HOME_POSITION", [(m.latitude, m.longitude, m.altitude)
+                           for m in own("HOME_POSITION") if m.latitude or m.longitude]),
+    ]
+    for name, rows in candidates:
+        if rows:
+            lat, lon, alt = np.median(np.array(rows, dtype=float), axis=0)
+            return Position(lat * 1e-7, lon * 1e-7, alt * 1e-3, name)
+    return None
+
+
+def _date(messages: dict[str, list], src: tuple) -> tuple[_dt.datetime | None, str]:
+    """UTC date: the vehicle's SYSTEM_TIME, else the recorder's clock (arrival stamps)."""
+    unix = [m.time_unix_usec for m in messages.get("SYSTEM_TIME", [])
+            if m.get_srcSystem() == src[0] and m.time_unix_usec > 0]
+    if unix:
+        return (_dt.datetime.fromtimestamp(float(np.median(unix)) * 1e-6, _dt.UTC),
+                "SYSTEM_TIME")
+    stamps = [m._timestamp for rows in messages.values() for m in rows[:1]]
+    if stamps and math.isfinite(stamps[0]) and stamps[0] > 0:
+        return _dt.datetime.fromtimestamp(float(min(stamps)), _dt.UTC), "tlog arrival time"
+    return None, ""
+
+
+def _velocity_rows(messages: dict[str, list], src: tuple, clock: BoardClock
+                   ) -> VelocityRows | None:
+    """The preferred velocity source: LOCAL_POSITION_NED, GLOBAL_POSITION_INT, GPS_RAW_INT.
+
+    Each measurement is available at its arrival (board time of the IMU message before
+    it) and was valid at its own stamp when that is on the board clock.
+    """
+    for kind in VELOCITY_MESSAGES:
+        rows = [m for m in messages.get(kind, []) if m.get_srcSystem() == src[0]]
+        if kind == "LOCAL_POSITION_NED":
+            v = _fields(rows, "vx", "vy", "vz") if rows else np.empty((0, 3))
+            stamp, scale = "time_boot_ms", 1e-3
+        elif kind == "GLOBAL_POSITION_INT":
+            rows = [m for m in rows if m.lat or m.lon]  # lat = lon = 0: no position fix
+            v = _fields(rows, "vx", "vy", "vz") * 1e-2 if rows else np.empty((0, 3))
+            stamp, scale = "time_boot_ms", 1e-3
+        else:
+            rows = [m for m in rows if m.fix_type >= GPS_FIX_3D and m.vel != UINT16_UNKNOWN
+                    and m.cog != UINT16_UNKNOWN]
+            speed = _fields(rows, "vel")[:, 0] * 1e-2 if rows else np.empty(0)
+            cog = np.radians(_fields(rows, "cog")[:, 0] * 1e-2) if rows else np.empty(0)
+            v = np.column_stack([speed * np.cos(cog), speed * np.sin(cog),
+                                 np.full(len(rows), np.nan)])
+            stamp, scale = "time_usec", 1e-6
+        if not rows:
+            continue
+        arrival = clock.preceding(np.array([m._order for m in rows]))
+        own = np.array([getattr(m, stamp) for m in rows], dtype=float) * scale
+        valid = np.where(clock.usable(own), own, np.nan)
+        return VelocityRows(v, arrival, valid, kind)
+    return None

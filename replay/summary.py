@@ -1,0 +1,70 @@
+"""The text summary of one replayed file: where the data came from, then a compact table.
+
+Every cell is a number or a footnote mark; each footnote says in one line why that
+number does not exist (static log, no magnetometer, no overlap...), once for all the
+estimators it applies to. The table stays within 80 columns for short labels.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from typing import TextIO
+
+from .evaluate import Evaluation
+
+#: (Score field, header, scale, format)
+COLUMNS = (("total_deg", "total°", 1.0, "{:.3f}"), ("heading_deg", "heading°", 1.0, "{:.3f}"),
+           ("inclination_deg", "incl°", 1.0, "{:.3f}"), ("lag_s", "lag ms", 1e3, "{:.1f}"),
+           ("convergence_s", "conv s", 1.0, "{:.2f}"))
+CELL = 9
+
+
+def header_lines(ev: Evaluation) -> list[str]:
+    """Source, reference, declination, aiding, notes and warnings: one line each."""
+    rec, prep = ev.recording, ev.prepared
+    ref = rec.reference
+    lines = [f"{rec.path}: {rec.format}, IMU {rec.source}, {rec.n} samples, "
+             f"{rec.duration:.1f} s at {rec.rate_hz:.1f} Hz"]
+    if ref is None:
+        lines.append("  reference:   none (nothing to score against)")
+    else:
+        timing = f"; {ref.timing}" if ref.timing else ""
+        lines.append(f"  reference:   {ref.kind} ({ref.source}, {ref.north} north{timing})")
+    lines.append(f"  declination: {prep.declination.describe()}")
+    lines.append(f"  aiding:      {prep.aid_note}")
+    lines += [f"  note: {n}" for n in rec.notes]
+    if rec.cleanup.dropped:
+        lines.append(f"  note: dropped IMU samples: {rec.cleanup}")
+    lines += [f"  warning: {w}" for w in rec.warnings]
+    return lines
+
+
+def table_lines(ev: Evaluation) -> list[str]:
+    if ev.not_run:
+        return [f"not scored: {ev.not_run}; estimators not run"]
+    labels = list(ev.scores)
+    width = max(9, *(len(k) for k in labels)) if labels else 9
+    lines = [f"{'estimator':<{width}}" + "".join(f"{h:>{CELL}}" for _, h, _, _ in COLUMNS)]
+    notes: dict[tuple[str, str], list[str]] = {}  # (header, reason) -> estimators
+    for label, s in ev.scores.items():
+        cells = []
+        for name, head, scale, fmt in COLUMNS:
+            v = getattr(s, name)
+            if math.isfinite(v):
+                cells.append(fmt.format(v * scale))
+                continue
+            key = (head, s.reasons.get(name, "not available"))
+            notes.setdefault(key, []).append(label)
+            cells.append(f"({list(notes).index(key) + 1})")
+        lines.append(f"{label:<{width}}" + "".join(f"{c:>{CELL}}" for c in cells))
+    for k, ((head, reason), who) in enumerate(notes.items(), start=1):
+        scope = "" if len(who) == len(labels) else f" [{', '.join(who)}]"
+        lines.append(f"  ({k}) {head}{scope}: {reason}")
+    return lines
+
+
+def print_summary(ev: Evaluation, stream: TextIO | None = None) -> None:
+    out = stream if stream is not None else sys.stdout
+    for line in header_lines(ev) + table_lines(ev):
+        print(line, file=out)

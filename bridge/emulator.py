@@ -23,11 +23,11 @@ def emulator_config(cfg: BridgeConfig, duration_s: float | None) -> Any:
 
 
 def emulator_declination_deg() -> float:
-    """Magnetic declination of the emulator's world (the truth is referenced to true
-    north, the magnetometer to magnetic north)."""
+    """Magnetic declination at the emulator's home position (World Magnetic Model):
+    its truth is referenced to true north, its magnetometer to magnetic north."""
     from hil import EmulatorConfig
 
-    return float(EmulatorConfig().environment.declination_deg)
+    return float(EmulatorConfig().environment.magnetic_declination_deg)
 
 
 def builtin_emulator(cfg: BridgeConfig):

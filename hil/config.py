@@ -7,6 +7,8 @@ from dataclasses import dataclass, field, replace
 
 from .environment import Environment
 from .faults import FaultConfig
+from .gps import GpsConfig
+from .multirotor import DEFAULT_DRAG_PER_S
 from .sensors.hmc5883l import Hmc5883lConfig
 from .sensors.mpu6050 import Mpu6050Config, configure_for_rate, sample_rate
 from .sensors.ms5611 import DEFAULT_RATE_HZ as BARO_RATE_HZ
@@ -23,6 +25,8 @@ class EmulatorConfig:
     real rate is the nearest one the chip can produce (``imu_rate_hz``)."""
 
     profile: str = "static"
+    rotor_drag_per_s: float = DEFAULT_DRAG_PER_S  # the `flight` quadrotor's rotor drag [1/s]
+    gps: GpsConfig | None = None  # None: no GPS on the board
     rate_hz: float = 1000.0
     duration_s: float | None = 10.0  # None: until cancelled (streaming only)
     seed: int = 0

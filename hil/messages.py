@@ -9,6 +9,8 @@ What goes out (system id from the config, component MAV_COMP_ID_AUTOPILOT1):
   (mG, mrad/s, mGauss) or HIGHRES_IMU (SI, gauss) converted to FRD, as a flight
   controller sends them (an overflowed magnetometer axis is converted as read);
 * SCALED_PRESSURE with every MS5611 reading (50 Hz), after the datasheet compensation;
+* with a GPS: GPS_RAW_INT, GLOBAL_POSITION_INT and LOCAL_POSITION_NED per fix, stamped
+  with the instant the fix is valid for but sent ``latency`` later (see ``hil.gps``);
 * HIL_STATE_QUATERNION truth with every ``truth_divider``-th IMU sample (each sample up
   to 1 kHz), on the same board clock: attitude FRD -> NED, body rates, position and
   velocity, and the true specific force in mG.
@@ -33,10 +35,11 @@ from .environment import G
 from .recording import Recording
 from .source import frd_from_chip
 
-EARTH_RADIUS_M = 6371000.0
 # Order of packets due at the same instant: a barometer reading goes before the IMU
 # sample, so that HIGHRES_IMU can already carry it.
-ORDER_HEARTBEAT, ORDER_BARO, ORDER_IMU, ORDER_TRUTH = range(4)
+ORDER_HEARTBEAT, ORDER_BARO, ORDER_IMU, ORDER_TRUTH, ORDER_GPS = range(5)
+GPS_MESSAGES = ("GPS_RAW_INT", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED")
+UINT16_UNKNOWN = 65535
 HIGHRES_ACC_GYRO = 0x3F
 HIGHRES_MAG = 0x1C0
 HIGHRES_BARO = 0x200 | 0x800 | 0x1000  # abs pressure, pressure altitude, temperature
@@ -76,8 +79,11 @@ class Firmware:
             items.append((t, ORDER_IMU, imu, k))
             if truth:
                 items.append((t, ORDER_TRUTH, "HIL_STATE_QUATERNION", k))
+        for g, t in enumerate(rec.gps_sent_t_s.tolist()):
+            items.extend((t, ORDER_GPS, kind, g) for kind in GPS_MESSAGES)
         items.sort(key=lambda i: (i[0], i[1]))
         build = {
+            **self._gps_builders(rec),
             "HEARTBEAT": lambda _: self._heartbeat(),
             "SCALED_PRESSURE": self._scaled_pressure_builder(rec),
             "HIL_STATE_QUATERNION": self._truth_builder(rec),
@@ -144,12 +150,8 @@ class Firmware:
         return scaled_pressure
 
     def _truth_builder(self, rec: Recording):
-        env = self.config.environment
-        north, east, down = rec.truth_position_ned.T
-        lat = np.round((env.latitude_deg + np.degrees(north / EARTH_RADIUS_M)) * 1e7)
-        lon = np.round((env.longitude_deg + np.degrees(
-            east / (EARTH_RADIUS_M * math.cos(math.radians(env.latitude_deg))))) * 1e7)
-        alt = np.round((env.ground_altitude_m - down) * 1000.0)
+        lat_deg, lon_deg, alt_m = self.config.environment.geodetic(rec.truth_position_ned)
+        lat, lon, alt = np.round(lat_deg * 1e7), np.round(lon_deg * 1e7), np.round(alt_m * 1e3)
         speed = np.minimum(65535, np.round(np.linalg.norm(rec.truth_velocity_ned, axis=1) * 100))
         ints = np.column_stack([
             lat, lon, alt, _int16_array(rec.truth_velocity_ned * 100.0), speed, speed,
@@ -163,6 +165,45 @@ class Firmware:
             return mavlink.MAVLink_hil_state_quaternion_message(
                 time_us[k], q[k], *rates[k], *i[0:3], *i[3:6], i[6], i[7], *i[8:11])
         return truth
+
+
+    def _gps_builders(self, rec: Recording) -> dict:
+        """GPS_RAW_INT, GLOBAL_POSITION_INT and LOCAL_POSITION_NED for each fix."""
+        gps = self.config.gps
+        if gps is None or not len(rec.gps_t_s):
+            return {}
+        env = self.config.environment
+        lat_deg, lon_deg, alt_m = env.geodetic(rec.gps_pos_ned)
+        vel = rec.gps_vel_ned
+        ground = np.hypot(vel[:, 0], vel[:, 1])
+        cog = np.round(np.degrees(np.arctan2(vel[:, 1], vel[:, 0])) % 360.0 * 100.0) % 36000
+        ints = np.column_stack([
+            np.round(lat_deg * 1e7), np.round(lon_deg * 1e7), np.round(alt_m * 1e3),
+            np.round(-rec.gps_pos_ned[:, 2] * 1e3), np.minimum(np.round(ground * 100), 65534),
+            cog, _int16_array(vel * 100.0)]).astype(np.int64).tolist()
+        time_us = rec.gps_time_us.tolist()
+        pos = rec.gps_pos_ned.tolist()
+        v = vel.tolist()
+        accuracy = (round(gps.pos_noise_h_m * 1e3), round(gps.pos_noise_v_m * 1e3),
+                    round(gps.vel_noise_h_mps * 1e3))
+        dop = (round(gps.hdop * 100), round(gps.vdop * 100))
+
+        def raw(g: int) -> mavlink.MAVLink_message:
+            i = ints[g]
+            return mavlink.MAVLink_gps_raw_int_message(
+                time_us[g], mavlink.GPS_FIX_TYPE_3D_FIX, i[0], i[1], i[2], *dop, i[4], i[5],
+                gps.satellites, 0, *accuracy, 0, 0)
+
+        def global_position(g: int) -> mavlink.MAVLink_message:
+            i = ints[g]
+            return mavlink.MAVLink_global_position_int_message(
+                time_us[g] // 1000, i[0], i[1], i[2], i[3], i[6], i[7], i[8], UINT16_UNKNOWN)
+
+        def local_position(g: int) -> mavlink.MAVLink_message:
+            return mavlink.MAVLink_local_position_ned_message(time_us[g] // 1000, *pos[g], *v[g])
+
+        return {"GPS_RAW_INT": raw, "GLOBAL_POSITION_INT": global_position,
+                "LOCAL_POSITION_NED": local_position}
 
 
 def _int16_array(x: np.ndarray) -> np.ndarray:

@@ -19,6 +19,7 @@ from .gps import GpsConfig
 from .link import Emulator
 from .motion import PROFILE_NAMES
 from .multirotor import DEFAULT_DRAG_PER_S
+from .personality import AUTOPILOTS
 from .source import SampleSource
 
 PACING_SWITCH_INTERVAL_S = 1e-3
@@ -62,7 +63,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="seconds of stream; 0 runs until interrupted (default)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--fast", action="store_true", help="send as fast as possible (tests)")
-    p.add_argument("--imu-message", default="RAW_IMU", choices=IMU_MESSAGES)
+    p.add_argument("--autopilot", default="stm32", metavar="NAME",
+                   help=f"personality on the link: {', '.join(AUTOPILOTS)} (default stm32, the "
+                        "seeds' board; px4 streams HIGHRES_IMU, ardupilot RAW_IMU in its units)")
+    p.add_argument("--imu-message", default=None, metavar="NAME",
+                   help=f"IMU stream at start-up ({', '.join(IMU_MESSAGES)}; default: the "
+                        "autopilot's own)")
     p.add_argument("--sysid", type=int, default=1)
     p.add_argument("--truth-rate", type=float, default=None,
                    help="HIL_STATE_QUATERNION rate [Hz] (default: IMU rate, at most 1000)")
@@ -123,7 +129,8 @@ def config_from_args(args: argparse.Namespace) -> EmulatorConfig:
     return EmulatorConfig(
         profile=args.profile, rate_hz=args.rate,
         duration_s=args.duration if args.duration > 0 else None, seed=args.seed,
-        sysid=args.sysid, imu_message=args.imu_message, fast=args.fast, faults=faults,
+        sysid=args.sysid, autopilot=args.autopilot, imu_message=args.imu_message,
+        fast=args.fast, faults=faults,
         truth_rate_hz=args.truth_rate, clock_drift_ppm=args.clock_drift_ppm,
         clock_jitter_us=args.clock_jitter_us, rotor_drag_per_s=args.rotor_drag, gps=gps,
         environment=parse_home(args.home))
@@ -144,8 +151,8 @@ def _run(args: argparse.Namespace) -> int:
               file=sys.stderr)
     until = f"for {config.duration_s:g} s" if config.duration_s else "until interrupted"
     gps = f", GPS at {config.gps.rate_hz:g} Hz" if config.gps else ""
-    print(f"hil: {config.profile} at {rate:g} Hz{gps} to {', '.join(args.target)} {until}"
-          f"{' (fast)' if config.fast else ''}", file=sys.stderr)
+    print(f"hil: {config.autopilot} board, {config.profile} at {rate:g} Hz{gps} to "
+          f"{', '.join(args.target)} {until}{' (fast)' if config.fast else ''}", file=sys.stderr)
     # The chunk-making thread would otherwise hold the GIL for up to 5 ms at a time,
     # delaying the paced sends by as much.
     sys.setswitchinterval(PACING_SWITCH_INTERVAL_S)

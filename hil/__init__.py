@@ -5,7 +5,10 @@
                                   gps=GpsConfig()))
     stats = await Emulator(cfg).run(targets=[("127.0.0.1", 14550)])
 
-``simulate`` and the UDP stream produce the same samples for the same seed.
+``simulate`` and the UDP stream produce the same samples for the same seed. On the
+link the board behaves like a flight controller of its ``autopilot`` personality
+(``stm32``, ``px4``, ``ardupilot``): it answers SET_MESSAGE_INTERVAL and parameter
+requests and sends its own onboard attitude.
 """
 
 from __future__ import annotations

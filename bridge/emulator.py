@@ -12,22 +12,31 @@ from .config import BridgeConfig
 
 
 def emulator_config(cfg: BridgeConfig, duration_s: float | None) -> Any:
-    """The ``hil.EmulatorConfig`` matching the bridge settings."""
-    from hil import EmulatorConfig
-    from hil.config import IMU_MESSAGES
+    """The ``hil.EmulatorConfig`` matching the bridge settings.
 
-    imu_message = cfg.imu_message if cfg.imu_message in IMU_MESSAGES else "RAW_IMU"
+    ``emulator_autopilot`` (stm32, px4, ardupilot) and ``emulator_gps`` are read when the
+    bridge configuration has them: the seeds' board streams the bridge's IMU message
+    from the start, the others start with their own streams and are asked by the bridge.
+    """
+    from hil import EmulatorConfig, GpsConfig
+    from hil.personality import personality
+
+    who = personality(getattr(cfg, "emulator_autopilot", "stm32"))
+    imu_message = cfg.imu_message if cfg.imu_message in who.imu_messages else None
+    if who.name != "stm32":
+        imu_message = None  # a real autopilot starts with its own defaults
+    gps = GpsConfig() if getattr(cfg, "emulator_gps", False) else None
     return EmulatorConfig(profile=cfg.emulator_profile, seed=cfg.emulator_seed,
                           fast=cfg.emulator_fast, duration_s=duration_s,
-                          imu_message=imu_message)
+                          autopilot=who.name, imu_message=imu_message, gps=gps)
 
 
 def emulator_declination_deg() -> float:
-    """Magnetic declination of the emulator's world (the truth is referenced to true
-    north, the magnetometer to magnetic north)."""
+    """Magnetic declination at the emulator's home position (World Magnetic Model):
+    its truth is referenced to true north, its magnetometer to magnetic north."""
     from hil import EmulatorConfig
 
-    return float(EmulatorConfig().environment.declination_deg)
+    return float(EmulatorConfig().environment.magnetic_declination_deg)
 
 
 def builtin_emulator(cfg: BridgeConfig):

@@ -6,15 +6,21 @@ import argparse
 import asyncio
 import contextlib
 import json
+import math
 import signal
 import sys
 from dataclasses import fields
 from pathlib import Path
 
 from .config import IMU_MESSAGES, EmulatorConfig
+from .environment import HOME_ALT_M, HOME_LAT_DEG, HOME_LON_DEG, Environment
 from .faults import FaultConfig
+from .gps import GpsConfig
 from .link import Emulator
 from .motion import PROFILE_NAMES
+from .multirotor import DEFAULT_DRAG_PER_S
+from .personality import AUTOPILOTS
+from .source import SampleSource
 
 PACING_SWITCH_INTERVAL_S = 1e-3
 
@@ -57,13 +63,33 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="seconds of stream; 0 runs until interrupted (default)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--fast", action="store_true", help="send as fast as possible (tests)")
-    p.add_argument("--imu-message", default="RAW_IMU", choices=IMU_MESSAGES)
+    p.add_argument("--autopilot", default="stm32", metavar="NAME",
+                   help=f"personality on the link: {', '.join(AUTOPILOTS)} (default stm32, the "
+                        "seeds' board; px4 streams HIGHRES_IMU, ardupilot RAW_IMU in its units)")
+    p.add_argument("--imu-message", default=None, metavar="NAME",
+                   help=f"IMU stream at start-up ({', '.join(IMU_MESSAGES)}; default: the "
+                        "autopilot's own)")
     p.add_argument("--sysid", type=int, default=1)
     p.add_argument("--truth-rate", type=float, default=None,
                    help="HIL_STATE_QUATERNION rate [Hz] (default: IMU rate, at most 1000)")
     p.add_argument("--clock-drift-ppm", type=float, default=0.0)
     p.add_argument("--clock-jitter-us", type=float, default=0.0)
     p.add_argument("--stats-json", type=Path, help="write the sent/fault counts here at exit")
+    p.add_argument("--rotor-drag", type=float, default=DEFAULT_DRAG_PER_S, metavar="PER_S",
+                   help="rotor drag of the `flight` quadrotor [1/s] (default "
+                        f"{DEFAULT_DRAG_PER_S}; real quads 0.3-0.6)")
+    p.add_argument("--home", default=None, metavar="LAT,LON[,ALT]",
+                   help="take-off point, WGS-84 degrees and metres AMSL (default PX4 SITL's "
+                        f"{HOME_LAT_DEG},{HOME_LON_DEG},{HOME_ALT_M:g}); the Earth's field "
+                        "comes from the World Magnetic Model there")
+    gps = p.add_argument_group("GPS (u-blox-like: GPS_RAW_INT, GLOBAL_POSITION_INT, "
+                               "LOCAL_POSITION_NED)")
+    gps.add_argument("--gps", action="store_true", help="fit a GPS receiver")
+    gps.add_argument("--gps-rate", type=float, default=GpsConfig.rate_hz, metavar="HZ",
+                     help=f"fixes per second (default {GpsConfig.rate_hz:g})")
+    gps.add_argument("--gps-latency", type=float, default=GpsConfig.latency_s, metavar="S",
+                     help="from the instant a fix is valid to sending it (default "
+                          f"{GpsConfig.latency_s:g})")
     faults = p.add_argument_group("faults")
     for f in fields(FaultConfig):
         faults.add_argument("--" + f.name.replace("_", "-"), dest=f"fault_{f.name}", type=float,
@@ -82,14 +108,32 @@ def parse_target(text: str) -> tuple[str, int]:
     return parts[0], int(parts[1])
 
 
+def parse_home(text: str | None) -> Environment:
+    """``LAT,LON[,ALT]`` -> the Environment at that place; ValueError otherwise."""
+    if text is None:
+        return Environment()
+    parts = text.split(",")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) not in (2, 3) or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"home must look like LAT,LON[,ALT], got {text!r}")
+    alt = values[2] if len(values) == 3 else HOME_ALT_M
+    return Environment(latitude_deg=values[0], longitude_deg=values[1], ground_altitude_m=alt)
+
+
 def config_from_args(args: argparse.Namespace) -> EmulatorConfig:
     faults = FaultConfig(**{f.name: getattr(args, f"fault_{f.name}") for f in fields(FaultConfig)})
+    gps = (GpsConfig(rate_hz=args.gps_rate, latency_s=args.gps_latency) if args.gps else None)
     return EmulatorConfig(
         profile=args.profile, rate_hz=args.rate,
         duration_s=args.duration if args.duration > 0 else None, seed=args.seed,
-        sysid=args.sysid, imu_message=args.imu_message, fast=args.fast, faults=faults,
+        sysid=args.sysid, autopilot=args.autopilot, imu_message=args.imu_message,
+        fast=args.fast, faults=faults,
         truth_rate_hz=args.truth_rate, clock_drift_ppm=args.clock_drift_ppm,
-        clock_jitter_us=args.clock_jitter_us)
+        clock_jitter_us=args.clock_jitter_us, rotor_drag_per_s=args.rotor_drag, gps=gps,
+        environment=parse_home(args.home))
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -97,6 +141,7 @@ def _run(args: argparse.Namespace) -> int:
         targets = [parse_target(t) for t in args.target]
         config = config_from_args(args)
         emulator = Emulator(config)
+        SampleSource(config)  # builds the profile: a bad profile or drag fails here
     except ValueError as exc:
         print(f"attitude-bridge hil: error: {exc}", file=sys.stderr)
         return 2
@@ -105,8 +150,9 @@ def _run(args: argparse.Namespace) -> int:
         print(f"IMU rate {args.rate:g} Hz is not available on the MPU6050; using {rate:g} Hz",
               file=sys.stderr)
     until = f"for {config.duration_s:g} s" if config.duration_s else "until interrupted"
-    print(f"hil: {config.profile} at {rate:g} Hz to {', '.join(args.target)} {until}"
-          f"{' (fast)' if config.fast else ''}", file=sys.stderr)
+    gps = f", GPS at {config.gps.rate_hz:g} Hz" if config.gps else ""
+    print(f"hil: {config.autopilot} board, {config.profile} at {rate:g} Hz{gps} to "
+          f"{', '.join(args.target)} {until}{' (fast)' if config.fast else ''}", file=sys.stderr)
     # The chunk-making thread would otherwise hold the GIL for up to 5 ms at a time,
     # delaying the paced sends by as much.
     sys.setswitchinterval(PACING_SWITCH_INTERVAL_S)

@@ -7,12 +7,15 @@ from dataclasses import dataclass, field, replace
 
 from .environment import Environment
 from .faults import FaultConfig
+from .gps import GpsConfig
+from .multirotor import DEFAULT_DRAG_PER_S
+from .personality import personality
 from .sensors.hmc5883l import Hmc5883lConfig
 from .sensors.mpu6050 import Mpu6050Config, configure_for_rate, sample_rate
 from .sensors.ms5611 import DEFAULT_RATE_HZ as BARO_RATE_HZ
 from .sensors.ms5611 import Ms5611
 
-IMU_MESSAGES = ("RAW_IMU", "SCALED_IMU", "HIGHRES_IMU")
+IMU_MESSAGES = ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "HIGHRES_IMU")
 #: Default ceiling for HIL_STATE_QUATERNION: every IMU sample up to this rate.
 MAX_TRUTH_RATE_HZ = 1000.0
 
@@ -23,12 +26,15 @@ class EmulatorConfig:
     real rate is the nearest one the chip can produce (``imu_rate_hz``)."""
 
     profile: str = "static"
+    rotor_drag_per_s: float = DEFAULT_DRAG_PER_S  # the `flight` quadrotor's rotor drag [1/s]
+    gps: GpsConfig | None = None  # None: no GPS on the board
     rate_hz: float = 1000.0
     duration_s: float | None = 10.0  # None: until cancelled (streaming only)
     seed: int = 0
     sysid: int = 1
     compid: int = 1  # MAV_COMP_ID_AUTOPILOT1
-    imu_message: str = "RAW_IMU"
+    autopilot: str = "stm32"  # personality on the link: stm32, px4, ardupilot
+    imu_message: str | None = None  # None: the personality's (RAW_IMU, HIGHRES_IMU, RAW_IMU)
     fast: bool = False
     faults: FaultConfig = field(default_factory=FaultConfig)
     truth_rate_hz: float | None = None  # None: IMU rate, divided down to <= 1 kHz
@@ -43,8 +49,14 @@ class EmulatorConfig:
     ms5611: Ms5611 = field(default_factory=Ms5611)
 
     def __post_init__(self) -> None:
+        who = personality(self.autopilot)
+        if self.imu_message is None:
+            object.__setattr__(self, "imu_message", who.imu_messages[0])
         if self.imu_message not in IMU_MESSAGES:
             raise ValueError(f"imu_message must be one of {IMU_MESSAGES}, got {self.imu_message!r}")
+        if self.imu_message not in who.imu_messages:
+            raise ValueError(f"the {who.name} autopilot does not send {self.imu_message} "
+                             f"(it has {', '.join(who.imu_messages)})")
         if not 1 <= self.sysid <= 255 or not 0 <= self.compid <= 255:
             raise ValueError("sysid must be 1..255 and compid 0..255")
         if self.duration_s is not None and not (math.isfinite(self.duration_s)

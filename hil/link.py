@@ -1,5 +1,12 @@
 """The board's UDP link: paces the firmware's packets in real time (or as fast as
-possible) to one or more targets, through the link faults, inside asyncio."""
+possible) to one or more targets, through the link faults, inside asyncio; and reads
+its socket like an autopilot: commands and parameter requests from a listener (sent to
+the address the stream comes from) are answered to their sender (``hil.commands``).
+
+Every datagram, stream or reply, gets the link's next sequence number when it is sent
+(``Sequencer``), so a reply slotted between pre-built stream packets does not look like
+loss or reordering to a listener counting sequence gaps.
+"""
 
 from __future__ import annotations
 
@@ -9,9 +16,12 @@ import socket
 import time
 from concurrent.futures import ThreadPoolExecutor
 
+from fastcrc.crc16 import mcrf4xx
+
+from .commands import CommandHandler
 from .config import EmulatorConfig
 from .faults import LinkFaults
-from .messages import Firmware, Packet
+from .messages import Firmware, Packet, mavlink
 from .source import SampleSource
 from .stats import EmulatorStats
 
@@ -21,9 +31,35 @@ log = logging.getLogger(__name__)
 FAST_YIELD_EVERY = 16
 
 
-class _Sender(asyncio.DatagramProtocol):
-    def __init__(self, stats: EmulatorStats):
+class Sequencer:
+    """Stamps the link's running sequence number into finished MAVLink 2 frames."""
+
+    def __init__(self) -> None:
+        self.seq = 0
+
+    def stamp(self, data: bytes) -> bytes:
+        frame = bytearray(data)
+        if len(frame) < 12 or frame[0] != 0xFD:
+            return data
+        msg_id = frame[7] | frame[8] << 8 | frame[9] << 16
+        cls = mavlink.mavlink_map.get(msg_id)
+        if cls is None:
+            return data
+        frame[4] = self.seq
+        self.seq = (self.seq + 1) & 0xFF
+        end = 10 + frame[1]
+        crc = mcrf4xx(bytes(frame[1:end]) + bytes([cls.crc_extra]))
+        frame[end], frame[end + 1] = crc & 0xFF, crc >> 8
+        return bytes(frame)
+
+
+class _Endpoint(asyncio.DatagramProtocol):
+    def __init__(self, stats: EmulatorStats, on_datagram):
         self.stats = stats
+        self.on_datagram = on_datagram
+
+    def datagram_received(self, data: bytes, addr: tuple) -> None:
+        self.on_datagram(data, addr)
 
     def error_received(self, exc: Exception) -> None:
         # A target without a listener answers with ICMP port unreachable; keep going.
@@ -47,12 +83,38 @@ class Emulator:
         addresses = [await _resolve(loop, host, port) for host, port in targets]
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.setblocking(False)
-        transport, _ = await loop.create_datagram_endpoint(lambda: _Sender(self.stats),
-                                                           sock=sock)
         source = SampleSource(cfg, counts=self.stats.faults)
         mpu = source.mpu.config
         firmware = Firmware(cfg, (mpu.gyro_lsb_per_dps, mpu.accel_lsb_per_g),
                             source.hmc.config.lsb_per_gauss)
+        self.firmware = firmware
+        handler = CommandHandler(firmware.personality, firmware.streams, cfg.sysid, cfg.compid,
+                                 cfg.environment.magnetic_declination_deg,
+                                 self.stats.requests)
+        sequencer = Sequencer()
+
+        def on_datagram(data: bytes, addr: tuple) -> None:
+            parser = mavlink.MAVLink(None)  # one per datagram: no half frame carries over
+            parser.robust_parsing = True
+            try:
+                msgs = parser.parse_buffer(data) or []
+            except Exception:  # bad bytes from the link are counted, never raised
+                msgs = []
+            if not msgs:
+                self.stats.requests.ignored += 1
+            for msg in msgs:
+                if msg.get_type() == "BAD_DATA":
+                    self.stats.requests.ignored += 1
+                    continue
+                for reply in handler.handle(msg):
+                    data_out = sequencer.stamp(firmware.pack_reply(reply))
+                    self.stats.count_message(reply.get_type())
+                    transport.sendto(data_out, addr)
+                    self.stats.datagrams_sent += 1
+                    self.stats.bytes_sent += len(data_out)
+
+        transport, _ = await loop.create_datagram_endpoint(
+            lambda: _Endpoint(self.stats, on_datagram), sock=sock)
         link = LinkFaults(cfg.faults, source.rng["link_faults"], self.stats.faults)
         start_wall = time.perf_counter()
         start: float | None = None  # stream time 0 = when the first packet is ready
@@ -91,7 +153,7 @@ class Emulator:
                         if wait > 0.0:
                             await asyncio.sleep(wait)
                     self.stats.count_message(packet.kind)
-                    send(link.apply(packet.data))
+                    send(link.apply(sequencer.stamp(packet.data)))
                 self.stats.imu_samples += n_samples
                 self.stats.stream_time_s = t_end
             send(link.flush())

@@ -2,13 +2,21 @@
 
 What goes out (system id from the config, component MAV_COMP_ID_AUTOPILOT1):
 
-* HEARTBEAT at 1 Hz: a quadrotor, MAV_AUTOPILOT_GENERIC, HIL enabled, active;
-* RAW_IMU with every IMU sample: the MPU6050 / HMC5883L register counts in the chips'
-  axes (RFU) and ``temperature`` from TEMP_OUT in cdegC; the magnetometer fields repeat
-  the last reading between its 15 Hz updates. Or, with ``imu_message``, SCALED_IMU
-  (mG, mrad/s, mGauss) or HIGHRES_IMU (SI, gauss) converted to FRD, as a flight
-  controller sends them (an overflowed magnetometer axis is converted as read);
+* HEARTBEAT at 1 Hz: a quadrotor, HIL enabled, active, with the personality's
+  MAV_AUTOPILOT (``hil.personality``);
+* the IMU stream(s) of the personality at their current rates. ``stm32``: RAW_IMU with
+  every sample, the MPU6050 / HMC5883L register counts in the chips' axes (RFU) and
+  ``temperature`` from TEMP_OUT in cdegC (the magnetometer fields repeat the last
+  reading between its 15 Hz updates), or with ``imu_message`` SCALED_IMU (mG, mrad/s,
+  mGauss) or HIGHRES_IMU (SI, gauss) converted to FRD; ``px4``: HIGHRES_IMU with the
+  onboard gyro bias removed; ``ardupilot``: RAW_IMU in mG / mrad/s / mGauss (FRD) and
+  SCALED_IMU2 (an overflowed magnetometer axis is converted as read). HIGHRES_IMU's
+  fields_updated says what is new since the previous HIGHRES_IMU;
+* ATTITUDE (and for px4 ATTITUDE_QUATERNION) from the onboard estimator
+  (``hil.onboard``), stamped with the time of the sample it belongs to;
 * SCALED_PRESSURE with every MS5611 reading (50 Hz), after the datasheet compensation;
+* with a GPS: GPS_RAW_INT, GLOBAL_POSITION_INT and LOCAL_POSITION_NED per fix, stamped
+  with the instant the fix is valid for but sent ``latency`` later (see ``hil.gps``);
 * HIL_STATE_QUATERNION truth with every ``truth_divider``-th IMU sample (each sample up
   to 1 kHz), on the same board clock: attitude FRD -> NED, body rates, position and
   velocity, and the true specific force in mG.
@@ -28,15 +36,22 @@ import numpy as np
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import common as mavlink
 
+from estimators import quat
+
 from .config import EmulatorConfig
 from .environment import G
+from .onboard import make_onboard
+from .personality import NATURAL, personality
 from .recording import Recording
 from .source import frd_from_chip
+from .streams import StreamTable
 
-EARTH_RADIUS_M = 6371000.0
 # Order of packets due at the same instant: a barometer reading goes before the IMU
 # sample, so that HIGHRES_IMU can already carry it.
-ORDER_HEARTBEAT, ORDER_BARO, ORDER_IMU, ORDER_TRUTH = range(4)
+ORDER_HEARTBEAT, ORDER_BARO, ORDER_IMU, ORDER_ATTITUDE, ORDER_TRUTH, ORDER_GPS = range(6)
+BARO_READING = "baro reading"  # internal item: a reading that may or may not go out
+GPS_MESSAGES = ("GPS_RAW_INT", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED")
+UINT16_UNKNOWN = 65535
 HIGHRES_ACC_GYRO = 0x3F
 HIGHRES_MAG = 0x1C0
 HIGHRES_BARO = 0x200 | 0x800 | 0x1000  # abs pressure, pressure altitude, temperature
@@ -50,40 +65,79 @@ class Packet:
 
 
 class Firmware:
-    """Packs readings into MAVLink 2 with one sequence counter, like an autopilot."""
+    """Packs readings into MAVLink 2 with one sequence counter, like an autopilot.
 
-    def __init__(self, config: EmulatorConfig, mpu_lsb: tuple[float, float], mag_lsb: float):
+    What it sends, and how often, follows its personality and its stream table (which
+    SET_MESSAGE_INTERVAL changes through the link); its onboard estimator runs on every
+    sample whether or not ATTITUDE is being sent, as a flight controller's does.
+    """
+
+    def __init__(self, config: EmulatorConfig, mpu_lsb: tuple[float, float], mag_lsb: float,
+                 streams: StreamTable | None = None):
         self.config = config
+        self.personality = personality(config.autopilot)
         self.mav = mavlink.MAVLink(None, srcSystem=config.sysid, srcComponent=config.compid)
+        self._reply_mav = mavlink.MAVLink(None, srcSystem=config.sysid,
+                                          srcComponent=config.compid)
         self.gyro_lsb_per_dps, self.accel_lsb_per_g = mpu_lsb
         self.mag_lsb_per_gauss = mag_lsb
+        self.streams = streams or StreamTable(self.personality, config.imu_message,
+                                              1.0 / config.imu_rate_hz)
+        self.onboard = make_onboard(config.autopilot, config.imu_rate_hz, self.gyro_lsb_per_dps,
+                                    config.environment.magnetic_declination_deg)
         self._next_heartbeat = 0
         self._pressure_hpa = math.nan  # latest barometer reading, for HIGHRES_IMU
         self._baro_new = False
+        self._mag_new: dict[str, bool] = {}  # per IMU stream: a new reading since the last sent
 
     def packets(self, rec: Recording, t_end: float) -> list[Packet]:
         """Every packet due in [first sample, t_end), in sending order."""
+        streams = self.streams
         items: list[tuple[float, int, str, int]] = []
         period = 1.0 / self.config.heartbeat_hz
         while self._next_heartbeat * period < t_end:
             items.append((self._next_heartbeat * period, ORDER_HEARTBEAT, "HEARTBEAT", 0))
             self._next_heartbeat += 1
-        items.extend((t, ORDER_BARO, "SCALED_PRESSURE", m)
-                     for m, t in enumerate(rec.baro_t_s.tolist()))
-        imu = self.config.imu_message
-        for k, (t, truth) in enumerate(zip(rec.t_s.tolist(), rec.truth_on_wire.tolist(),
-                                           strict=True)):
-            items.append((t, ORDER_IMU, imu, k))
-            if truth:
+        # Every barometer reading reaches the firmware (HIGHRES_IMU carries the latest);
+        # SCALED_PRESSURE goes out when its stream is due.
+        items.extend((t, ORDER_BARO, BARO_READING, m) for m, t in enumerate(rec.baro_t_s.tolist()))
+        imu_kinds = streams.active(self.personality.imu_messages)
+        att_kinds = streams.active(self.personality.attitude_messages)
+        truth_natural = streams.interval("HIL_STATE_QUATERNION") is NATURAL
+        mag_flags: dict[tuple[str, int], bool] = {}
+        for k, (t, truth, mag) in enumerate(zip(rec.t_s.tolist(), rec.truth_on_wire.tolist(),
+                                                rec.mag_updated.tolist(), strict=True)):
+            for kind in imu_kinds:
+                self._mag_new[kind] = self._mag_new.get(kind, False) or mag
+                if streams.due(kind, t):
+                    items.append((t, ORDER_IMU, kind, k))
+                    mag_flags[(kind, k)] = self._mag_new[kind]
+                    self._mag_new[kind] = False
+            items.extend((t, ORDER_ATTITUDE, kind, k) for kind in att_kinds
+                         if streams.due(kind, t))
+            if truth if truth_natural else streams.due("HIL_STATE_QUATERNION", t):
                 items.append((t, ORDER_TRUTH, "HIL_STATE_QUATERNION", k))
+        for g, t in enumerate(rec.gps_sent_t_s.tolist()):
+            items.extend((t, ORDER_GPS, kind, g) for kind in GPS_MESSAGES if streams.due(kind, t))
         items.sort(key=lambda i: (i[0], i[1]))
+        q, rates = self.onboard.run(rec)
         build = {
+            **self._gps_builders(rec, q),
+            **{kind: self._imu_builder(rec, kind, mag_flags, rates) for kind in imu_kinds},
+            **self._attitude_builders(rec, q, rates),
             "HEARTBEAT": lambda _: self._heartbeat(),
-            "SCALED_PRESSURE": self._scaled_pressure_builder(rec),
+            BARO_READING: self._scaled_pressure_builder(rec),
             "HIL_STATE_QUATERNION": self._truth_builder(rec),
-            imu: self._imu_builder(rec),
         }
-        return [Packet(t, kind, self._pack(build[kind](i))) for t, _, kind, i in items]
+        out = []
+        for t, _, kind, i in items:
+            msg = build[kind](i)
+            if kind == BARO_READING:
+                if not streams.due("SCALED_PRESSURE", t):
+                    continue
+                kind = "SCALED_PRESSURE"
+            out.append(Packet(t, kind, self._pack(msg)))
+        return out
 
     def _pack(self, msg: mavlink.MAVLink_message) -> bytes:
         data = bytes(msg.pack(self.mav))
@@ -91,38 +145,49 @@ class Firmware:
         self.mav.seq = (self.mav.seq + 1) % 256
         return data
 
+    def pack_reply(self, msg: mavlink.MAVLink_message) -> bytes:
+        """A reply (COMMAND_ACK, PARAM_VALUE) packed as this autopilot; its own packer,
+        because replies are made in the event loop while chunks are packed in a worker
+        (the link stamps the shared sequence number when sending)."""
+        return bytes(msg.pack(self._reply_mav))
+
     def _heartbeat(self) -> mavlink.MAVLink_message:
         return mavlink.MAVLink_heartbeat_message(
-            type=mavlink.MAV_TYPE_QUADROTOR, autopilot=mavlink.MAV_AUTOPILOT_GENERIC,
+            type=mavlink.MAV_TYPE_QUADROTOR, autopilot=self.personality.autopilot,
             base_mode=mavlink.MAV_MODE_FLAG_HIL_ENABLED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
             custom_mode=0, system_status=mavlink.MAV_STATE_ACTIVE, mavlink_version=3)
 
     # Each builder converts a whole chunk with numpy once, then makes messages by index.
 
-    def _imu_builder(self, rec: Recording):
-        kind = self.config.imu_message
+    def _imu_builder(self, rec: Recording, kind: str, mag_flags: dict, rates: np.ndarray):
         temp = _int16_array(rec.temperature_c * 100.0)
         temp[temp == 0] = 1  # 0 means "no temperature" in RAW_IMU / SCALED_IMU
         temp = temp.tolist()
-        if kind == "RAW_IMU":
-            time_us = rec.time_us.tolist()
-            rows = np.hstack([rec.acc_counts, rec.gyr_counts, rec.mag_counts]).tolist()
-            return lambda k: mavlink.MAVLink_raw_imu_message(time_us[k], *rows[k], 0, temp[k])
         acc = frd_from_chip(rec.acc_counts) * (G / self.accel_lsb_per_g)
         gyr = np.radians(frd_from_chip(rec.gyr_counts) / self.gyro_lsb_per_dps)
         mag = frd_from_chip(rec.mag_counts) / self.mag_lsb_per_gauss
-        if kind == "SCALED_IMU":
+        milli = np.hstack([_int16_array(acc / G * 1000.0), _int16_array(gyr * 1000.0),
+                           _int16_array(mag * 1000.0)]).tolist()
+        if kind == "RAW_IMU":
+            time_us = rec.time_us.tolist()
+            if self.personality.name == "ardupilot":  # mG, mrad/s, mGauss, FRD
+                return lambda k: mavlink.MAVLink_raw_imu_message(time_us[k], *milli[k], 0,
+                                                                 temp[k])
+            rows = np.hstack([rec.acc_counts, rec.gyr_counts, rec.mag_counts]).tolist()
+            return lambda k: mavlink.MAVLink_raw_imu_message(time_us[k], *rows[k], 0, temp[k])
+        if kind in ("SCALED_IMU", "SCALED_IMU2"):
             time_ms = (rec.time_us // 1000).tolist()
-            rows = np.hstack([_int16_array(acc / G * 1000.0), _int16_array(gyr * 1000.0),
-                              _int16_array(mag * 1000.0)]).tolist()
-            return lambda k: mavlink.MAVLink_scaled_imu_message(time_ms[k], *rows[k], temp[k])
+            cls = (mavlink.MAVLink_scaled_imu_message if kind == "SCALED_IMU"
+                   else mavlink.MAVLink_scaled_imu2_message)
+            return lambda k: cls(time_ms[k], *milli[k], temp[k])
+        if self.personality.name == "px4":
+            gyr = rates  # PX4 removes its estimator's gyro bias from HIGHRES_IMU
         time_us = rec.time_us.tolist()
         rows = np.hstack([acc, gyr, mag]).tolist()
         temp_c = rec.temperature_c.tolist()
-        updated = rec.mag_updated.tolist()
 
         def highres(k: int) -> mavlink.MAVLink_message:
-            fields = HIGHRES_ACC_GYRO | (HIGHRES_MAG if updated[k] else 0)
+            fields = HIGHRES_ACC_GYRO | (HIGHRES_MAG if mag_flags.get((kind, k)) else 0)
             if self._baro_new:
                 fields |= HIGHRES_BARO
                 self._baro_new = False
@@ -131,7 +196,20 @@ class Firmware:
                 _pressure_altitude(self._pressure_hpa), temp_c[k], fields, 0)
         return highres
 
+    def _attitude_builders(self, rec: Recording, q: np.ndarray, rates: np.ndarray) -> dict:
+        """ATTITUDE / ATTITUDE_QUATERNION from the onboard estimate, at its sample time."""
+        time_ms = (rec.time_us // 1000).tolist()
+        euler = quat.to_euler(q).tolist()
+        qs = q.tolist()
+        w = rates.tolist()
+        return {
+            "ATTITUDE": lambda k: mavlink.MAVLink_attitude_message(time_ms[k], *euler[k], *w[k]),
+            "ATTITUDE_QUATERNION": lambda k: mavlink.MAVLink_attitude_quaternion_message(
+                time_ms[k], *qs[k], *w[k]),
+        }
+
     def _scaled_pressure_builder(self, rec: Recording):
+        """Every reading updates what HIGHRES_IMU carries; the message is built too."""
         time_ms = (rec.baro_time_us // 1000).tolist()
         hpa = (rec.pressure_pa / 100.0).tolist()
         temp = _int16_array(rec.baro_temp_cdeg).tolist()
@@ -144,12 +222,8 @@ class Firmware:
         return scaled_pressure
 
     def _truth_builder(self, rec: Recording):
-        env = self.config.environment
-        north, east, down = rec.truth_position_ned.T
-        lat = np.round((env.latitude_deg + np.degrees(north / EARTH_RADIUS_M)) * 1e7)
-        lon = np.round((env.longitude_deg + np.degrees(
-            east / (EARTH_RADIUS_M * math.cos(math.radians(env.latitude_deg))))) * 1e7)
-        alt = np.round((env.ground_altitude_m - down) * 1000.0)
+        lat_deg, lon_deg, alt_m = self.config.environment.geodetic(rec.truth_position_ned)
+        lat, lon, alt = np.round(lat_deg * 1e7), np.round(lon_deg * 1e7), np.round(alt_m * 1e3)
         speed = np.minimum(65535, np.round(np.linalg.norm(rec.truth_velocity_ned, axis=1) * 100))
         ints = np.column_stack([
             lat, lon, alt, _int16_array(rec.truth_velocity_ned * 100.0), speed, speed,
@@ -163,6 +237,55 @@ class Firmware:
             return mavlink.MAVLink_hil_state_quaternion_message(
                 time_us[k], q[k], *rates[k], *i[0:3], *i[3:6], i[6], i[7], *i[8:11])
         return truth
+
+
+    def _gps_builders(self, rec: Recording, q: np.ndarray) -> dict:
+        """GPS_RAW_INT, GLOBAL_POSITION_INT and LOCAL_POSITION_NED for each fix.
+
+        GLOBAL_POSITION_INT.hdg is the onboard estimate's heading when the fix is sent
+        (unknown on the stm32 board, whose 6-axis filter has no heading reference)."""
+        gps = self.config.gps
+        if gps is None or not len(rec.gps_t_s):
+            return {}
+        env = self.config.environment
+        lat_deg, lon_deg, alt_m = env.geodetic(rec.gps_pos_ned)
+        vel = rec.gps_vel_ned
+        ground = np.hypot(vel[:, 0], vel[:, 1])
+        cog = np.round(np.degrees(np.arctan2(vel[:, 1], vel[:, 0])) % 360.0 * 100.0) % 36000
+        ints = np.column_stack([
+            np.round(lat_deg * 1e7), np.round(lon_deg * 1e7), np.round(alt_m * 1e3),
+            np.round(-rec.gps_pos_ned[:, 2] * 1e3), np.minimum(np.round(ground * 100), 65534),
+            cog, _int16_array(vel * 100.0)]).astype(np.int64).tolist()
+        time_us = rec.gps_time_us.tolist()
+        pos = rec.gps_pos_ned.tolist()
+        v = vel.tolist()
+        if self.personality.name == "stm32":
+            hdg = [UINT16_UNKNOWN] * len(rec.gps_t_s)
+        else:
+            at = np.clip(np.searchsorted(rec.t_s, rec.gps_sent_t_s, side="right") - 1, 0,
+                         len(rec) - 1)
+            yaw = np.degrees(quat.to_euler(q[at])[:, 2]) % 360.0
+            hdg = (np.round(yaw * 100.0).astype(np.int64) % 36000).tolist()
+        accuracy = (round(gps.pos_noise_h_m * 1e3), round(gps.pos_noise_v_m * 1e3),
+                    round(gps.vel_noise_h_mps * 1e3))
+        dop = (round(gps.hdop * 100), round(gps.vdop * 100))
+
+        def raw(g: int) -> mavlink.MAVLink_message:
+            i = ints[g]
+            return mavlink.MAVLink_gps_raw_int_message(
+                time_us[g], mavlink.GPS_FIX_TYPE_3D_FIX, i[0], i[1], i[2], *dop, i[4], i[5],
+                gps.satellites, 0, *accuracy, 0, 0)
+
+        def global_position(g: int) -> mavlink.MAVLink_message:
+            i = ints[g]
+            return mavlink.MAVLink_global_position_int_message(
+                time_us[g] // 1000, i[0], i[1], i[2], i[3], i[6], i[7], i[8], hdg[g])
+
+        def local_position(g: int) -> mavlink.MAVLink_message:
+            return mavlink.MAVLink_local_position_ned_message(time_us[g] // 1000, *pos[g], *v[g])
+
+        return {"GPS_RAW_INT": raw, "GLOBAL_POSITION_INT": global_position,
+                "LOCAL_POSITION_NED": local_position}
 
 
 def _int16_array(x: np.ndarray) -> np.ndarray:

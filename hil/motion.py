@@ -7,6 +7,10 @@ Every profile is built from smooth analytic pieces, so its derivatives are exact
   ``p = φ' - ψ' sinθ``, ``q = θ' cosφ + ψ' sinφ cosθ``, ``r = -θ' sinφ + ψ' cosφ cosθ``;
 * position (NED) with its analytic second derivative, the linear acceleration.
 
+``flight`` is different: a quadrotor's dynamics (``hil.multirotor``), where the attitude
+follows from the thrust the planned acceleration needs. The older Euler-angle flight, whose
+attitude and translation are laid out independently, lives on as ``gentle``.
+
 Integrating the body rates therefore reproduces the attitude (tests check it).
 Specific force in the body frame is ``R^T (a_ned - g_ned)``: level and at rest the
 FRD accelerometer reads ``[0, 0, -g]``.
@@ -30,33 +34,13 @@ import numpy as np
 
 from estimators import quat
 
-from .environment import GRAVITY_NED
+from .multirotor import DEFAULT_DRAG_PER_S
+from .multirotor import flight as multirotor_flight
+from .truth import Profile, Truth
 
-PROFILE_NAMES = ("static", "tilt", "flight", "aggressive", "calibration")
+PROFILE_NAMES = ("static", "tilt", "flight", "gentle", "aggressive", "calibration")
 TILT_ROLL_DEG = 15.9  # the seed paper's static test
 TILT_PITCH_DEG = 9.2
-
-
-@dataclass(frozen=True)
-class Truth:
-    """Truth at a set of times: FRD body, NED world."""
-
-    t: np.ndarray  # (N,) seconds since the start of the motion
-    q: np.ndarray  # (N, 4) body -> NED
-    rates: np.ndarray  # (N, 3) body rates [rad/s] FRD
-    accel_ned: np.ndarray  # (N, 3) linear acceleration [m/s^2]
-    velocity_ned: np.ndarray  # (N, 3) [m/s]
-    position_ned: np.ndarray  # (N, 3) [m] relative to the take-off point
-
-    def specific_force(self) -> np.ndarray:
-        """What an ideal accelerometer reads, FRD [m/s^2]: R^T (a - g)."""
-        r = quat.to_dcm(self.q)
-        return np.einsum("nji,nj->ni", r, self.accel_ned - GRAVITY_NED)
-
-    def to_body(self, v_ned: np.ndarray) -> np.ndarray:
-        """A world vector (e.g. the Earth's field) in the body frame at each time."""
-        r = quat.to_dcm(self.q)
-        return np.einsum("nji,j->ni", r, np.asarray(v_ned, dtype=float))
 
 
 # ---- smooth building blocks -------------------------------------------------------
@@ -154,15 +138,6 @@ class Channel:
         return v, d1, d2
 
 
-class Profile:
-    """A motion: truth at any times."""
-
-    name = "profile"
-
-    def truth(self, t: np.ndarray) -> Truth:
-        raise NotImplementedError
-
-
 class EulerProfile(Profile):
     """Attitude from Euler-angle channels [rad], position from NED channels [m]."""
 
@@ -207,13 +182,17 @@ def tilt() -> Profile:
                         Channel())
 
 
-FLIGHT_GROUND_S = 5.0
-FLIGHT_TAKEOFF_S = FLIGHT_GROUND_S + 6.0
-FLIGHT_CYCLE_S = 24.0
+GENTLE_GROUND_S = 5.0
+GENTLE_TAKEOFF_S = GENTLE_GROUND_S + 6.0
+GENTLE_CYCLE_S = 24.0
 
 
-def flight(duration_s: float) -> Profile:
+def gentle(duration_s: float) -> Profile:
     """On the ground, take-off to 10 m, hover, then cycles of manoeuvres, yaw turns, climbs.
+
+    Not a multirotor's dynamics: the attitude is laid out on its own and the translation
+    is only a gentle repositioning (the accelerometer sees mostly gravity). Kept for
+    what it was made for, an easy hover-and-manoeuvre case; ``flight`` is the real one.
 
     The first 5 s the vehicle stands still on the ground (boot and arming, when a real
     board's estimator learns its gyro bias). Each 24 s cycle: roll and pitch manoeuvres
@@ -224,10 +203,10 @@ def flight(duration_s: float) -> Profile:
     """
     roll, pitch, yaw = Channel(), Channel(), Channel()
     north, east, down = Channel(), Channel(), Channel()
-    down.ramp(FLIGHT_GROUND_S, 5.0, -10.0)  # take-off
-    cycles = max(1, math.ceil((duration_s - FLIGHT_TAKEOFF_S) / FLIGHT_CYCLE_S))
+    down.ramp(GENTLE_GROUND_S, 5.0, -10.0)  # take-off
+    cycles = max(1, math.ceil((duration_s - GENTLE_TAKEOFF_S) / GENTLE_CYCLE_S))
     for k in range(cycles):
-        c = FLIGHT_TAKEOFF_S + k * FLIGHT_CYCLE_S
+        c = GENTLE_TAKEOFF_S + k * GENTLE_CYCLE_S
         roll.ramp(c + 0.0, 1.0, _deg(20)).ramp(c + 2.0, 1.0, _deg(-20))
         east.ramp(c + 0.5, 4.0, 2.0)
         pitch.ramp(c + 3.5, 1.0, _deg(-15)).ramp(c + 5.5, 1.0, _deg(15))
@@ -241,7 +220,7 @@ def flight(duration_s: float) -> Profile:
         north.ramp(c + 19.5, 4.0, -3.0)
         east.ramp(c + 19.5, 4.0, -2.0)
         roll.wobbles.append(Wobble(_deg(4.0), 0.4, c, 9))
-    return EulerProfile("flight", roll, pitch, yaw, north, east, down)
+    return EulerProfile("gentle", roll, pitch, yaw, north, east, down)
 
 
 AGGRESSIVE_CYCLE_S = 12.0
@@ -358,13 +337,15 @@ def load_attitude_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return times, q
 
 
-def make_profile(name: str, duration_s: float = 60.0) -> Profile:
-    """A profile by name (``static``, ``tilt``, ``flight``, ``aggressive``, ``calibration``,
-    ``file:PATH``)."""
+def make_profile(name: str, duration_s: float = 60.0,
+                 drag_per_s: float = DEFAULT_DRAG_PER_S) -> Profile:
+    """A profile by name (``static``, ``tilt``, ``flight``, ``gentle``, ``aggressive``,
+    ``calibration``, ``file:PATH``); ``drag_per_s`` is the rotor drag of ``flight``."""
     if name.startswith("file:"):
         return FileProfile(name[len("file:"):])
     builders = {"static": lambda: static(), "tilt": lambda: tilt(),
-                "flight": lambda: flight(duration_s), "aggressive": lambda: aggressive(duration_s),
+                "flight": lambda: multirotor_flight(duration_s, drag_per_s),
+                "gentle": lambda: gentle(duration_s), "aggressive": lambda: aggressive(duration_s),
                 "calibration": calibration}
     if name not in builders:
         raise ValueError(f"unknown profile {name!r}; valid: {', '.join(PROFILE_NAMES)}, file:PATH")

@@ -11,6 +11,12 @@ The magnetometer updates at its own rate (15 Hz by default); between updates the
 holds (and re-sends) the last reading: ``mag_counts``/``mag`` are held values and
 ``mag_updated`` marks the samples where a new reading arrived.
 
+With a GPS (``EmulatorConfig.gps``), ``gps_*`` hold its fixes (index g) exactly as sent:
+``gps_t_s`` the instant each is valid for, ``gps_time_us`` that instant on the board clock
+(the stamp on the wire), ``gps_sent_t_s`` when it went out (latency later), the measured
+``gps_vel_ned`` / ``gps_pos_ned`` (float32 values, as in LOCAL_POSITION_NED) and the true
+velocity at the fix. ``gps_aiding()`` turns them into the estimators' ``vel``/``vel_age``.
+
 Truth is given for every IMU sample, on the same board clock (``truth_time_us`` is
 ``time_us``); ``truth_on_wire`` marks those also sent as HIL_STATE_QUATERNION.
 """
@@ -22,6 +28,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from .faults import FaultCounts
+from .gps import aiding_at_samples
 
 
 @dataclass
@@ -53,12 +60,25 @@ class Recording:
     pressure_pa: np.ndarray  # board-compensated P [Pa = 0.01 mbar], int
     baro_temp_cdeg: np.ndarray  # board-compensated TEMP [0.01 °C], int
     truth_pressure_pa: np.ndarray
+    # GPS fixes (G), empty without a GPS
+    gps_t_s: np.ndarray  # valid at [true s]
+    gps_time_us: np.ndarray  # valid at [board µs], as stamped on the wire
+    gps_sent_t_s: np.ndarray  # sent at [true s]
+    gps_vel_ned: np.ndarray  # (G, 3) m/s, measured
+    gps_pos_ned: np.ndarray  # (G, 3) m from home, measured
+    gps_truth_vel_ned: np.ndarray  # (G, 3) m/s at gps_t_s
     #: Faults injected while producing these samples (set by ``simulate``).
     faults: FaultCounts | None = None
 
     @property
     def truth_time_us(self) -> np.ndarray:
         return self.time_us
+
+    def gps_aiding(self) -> tuple[np.ndarray, np.ndarray]:
+        """(vel (N, 3) NED with NaN rows, vel_age (N,) s) per IMU sample: each fix at
+        the first IMU sample sent after it, aged by the board stamps."""
+        return aiding_at_samples(self.t_s, self.time_us, self.gps_sent_t_s, self.gps_time_us,
+                                 self.gps_vel_ned)
 
     def __len__(self) -> int:
         return len(self.time_us)

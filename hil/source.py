@@ -14,6 +14,7 @@ import numpy as np
 from .board import BoardClock
 from .config import EmulatorConfig
 from .faults import ClockFaults, FaultCounts, SensorFaults
+from .gps import GpsFixes, GpsReceiver
 from .motion import Profile, make_profile
 from .recording import Recording
 from .sensors import ms5611
@@ -25,7 +26,7 @@ CHUNK_S = 0.05  # stream time per chunk
 UNBOUNDED_HORIZON_S = 6 * 3600.0
 #: RNG streams, in SeedSequence.spawn order. Never reorder (it changes every run).
 STREAMS = ("mpu_build", "mpu_noise", "hmc_build", "hmc_noise", "baro", "clock",
-           "sensor_faults", "clock_faults", "link_faults")
+           "sensor_faults", "clock_faults", "link_faults", "gps")
 
 
 def frd_from_chip(v: np.ndarray) -> np.ndarray:
@@ -55,7 +56,7 @@ class SampleSource:
         self.decimation = mpu_cfg.decimation
         self.mag_rate = config.hmc5883l.rate_hz
         horizon = config.duration_s if config.duration_s is not None else UNBOUNDED_HORIZON_S
-        self.profile: Profile = make_profile(config.profile, horizon)
+        self.profile: Profile = make_profile(config.profile, horizon, config.rotor_drag_per_s)
         self.mpu = Mpu6050(mpu_cfg, self.rng["mpu_build"])
         self.hmc = Hmc5883l(config.hmc5883l, self.rng["hmc_build"])
         self.clock = BoardClock(config.boot_time_s, config.clock_drift_ppm,
@@ -65,6 +66,8 @@ class SampleSource:
         self.sensor_faults = SensorFaults(config.faults, self.rng["sensor_faults"], self.counts,
                                           self.imu_rate, self.mag_rate)
         self.field_ned = config.environment.field_ned_gauss()
+        self.gps = (GpsReceiver(config.gps, self.profile, self.rng["gps"])
+                    if config.gps is not None else None)
         # The accelerometer's 1 kHz hold needs whole 8-sample blocks at 8 kHz internal.
         self.chunk_samples = 8 * max(1, math.ceil(self.imu_rate * CHUNK_S / 8))
         self.total_samples = (None if config.duration_s is None
@@ -113,6 +116,7 @@ class SampleSource:
         mag_c, updated = self._magnetometer(t)
         time_us = self.clock.stamp(t, self.clock_faults.offsets(t))
         baro = self._barometer(self.time_s)
+        gps = self._gps(self.time_s)
         lsb_g, lsb_a = self.mpu.config.gyro_lsb_per_dps, self.mpu.config.accel_lsb_per_g
         mag = frd_from_chip(mag_c) / self.hmc.config.lsb_per_gauss
         mag[np.any(mag_c == OVERFLOW, axis=1)] = np.nan
@@ -129,7 +133,7 @@ class SampleSource:
             truth_mag=truth.to_body(self.field_ned),
             truth_position_ned=truth.position_ned, truth_velocity_ned=truth.velocity_ned,
             truth_on_wire=(k0 + np.arange(n)) % cfg.truth_divider == 0,
-            **baro,
+            **baro, **gps,
         )
 
     def _magnetometer(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -172,6 +176,18 @@ class SampleSource:
             "baro_temp_cdeg": np.array([c.temp_cdeg for c in comp], dtype=np.int64),
             "truth_pressure_pa": true_p,
         }
+
+
+    def _gps(self, t_end: float) -> dict[str, np.ndarray]:
+        """GPS fixes sent before t_end (each measured ``latency`` earlier)."""
+        if self.gps is None:
+            fixes = GpsFixes.empty()
+        else:
+            fixes = self.gps.fixes_until(
+                t_end, lambda t: self.clock.stamp(t, self.clock_faults.offset_at(t), jitter=False))
+        return {"gps_t_s": fixes.t_s, "gps_time_us": fixes.time_us,
+                "gps_sent_t_s": fixes.sent_t_s, "gps_vel_ned": fixes.vel_ned,
+                "gps_pos_ned": fixes.pos_ned, "gps_truth_vel_ned": fixes.truth_vel_ned}
 
 
 def simulate(config: EmulatorConfig) -> Recording:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from .commands import Requests
 from .faults import FaultCounts
 
 
@@ -17,6 +18,7 @@ class EmulatorStats:
     stream_time_s: float = 0.0  # true time covered by what was sent
     wall_time_s: float = 0.0
     faults: FaultCounts = field(default_factory=FaultCounts)
+    requests: Requests = field(default_factory=Requests)  # commands read from the link
 
     def count_message(self, kind: str) -> None:
         self.messages[kind] = self.messages.get(kind, 0) + 1
@@ -31,13 +33,16 @@ class EmulatorStats:
             "stream_time_s": self.stream_time_s,
             "wall_time_s": self.wall_time_s,
             "faults": self.faults.to_dict(),
+            "requests": self.requests.to_dict(),
         }
 
     def summary(self) -> str:
         """Human-readable lines for the end of a CLI run."""
         msgs = ", ".join(f"{k} {v}" for k, v in sorted(self.messages.items()))
         faults = ", ".join(f"{k} {v}" for k, v in self.faults.to_dict().items() if v)
+        asked = ", ".join(f"{k} {v}" for k, v in self.requests.to_dict().items() if v)
         return (f"sent {self.datagrams_sent} datagrams ({self.bytes_sent} bytes) in "
                 f"{self.wall_time_s:.2f} s for {self.stream_time_s:.2f} s of stream; "
                 f"send errors {self.send_errors}\n"
-                f"messages: {msgs or 'none'}\nfaults injected: {faults or 'none'}")
+                f"messages: {msgs or 'none'}\nfaults injected: {faults or 'none'}\n"
+                f"requests: {asked or 'none'}")

@@ -32,6 +32,7 @@ class Receiver:
     corrupt: int = 0
     truncated: int = 0
     datagrams: int = 0
+    peer: tuple | None = None  # where the stream comes from (replies go there)
 
     @classmethod
     def open(cls) -> Receiver:
@@ -57,7 +58,7 @@ class Receiver:
         """Read everything waiting (asyncio reader callback, or call directly)."""
         while True:
             try:
-                data = self.sock.recv(65535)
+                data, self.peer = self.sock.recvfrom(65535)
             except (BlockingIOError, InterruptedError):
                 return
             self.handle(data, time.perf_counter())
@@ -79,6 +80,11 @@ class Receiver:
                 self.corrupt += 1
             else:
                 self.valid.append(Received(now, msg.get_seq(), data, msg))
+
+    def send(self, msg, sysid: int = 255, compid: int = 190) -> None:
+        """Send a pymavlink message to the stream's source (as a ground station)."""
+        mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+        self.sock.sendto(msg.pack(mav), self.peer)
 
     def of_type(self, kind: str) -> list:
         return [r.msg for r in self.valid if r.msg.get_type() == kind]

@@ -272,3 +272,16 @@ def test_cancel_stops_an_endless_stream_cleanly():
 def test_cli_rejects_bad_arguments(argv, capsys):
     assert cli_main(argv) == 2
     assert "error" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("extra", "why"), [
+    (["--autopilot", "px5"], "unknown autopilot"),
+    (["--autopilot", "px4", "--imu-message", "RAW_IMU"], "does not send RAW_IMU"),
+    (["--gps", "--gps-rate", "100"], "GPS rate"),
+    (["--gps", "--gps-latency", "-1"], "GPS latency"),
+    (["--home", "47.4"], "LAT,LON"), (["--home", "91,8"], "home"),
+    (["--rotor-drag", "-1"], "drag"), (["--imu-message", "ATTITUDE"], "imu_message")])
+def test_cli_new_options_fail_in_one_line_before_the_banner(extra, why, capsys):
+    assert cli_main(["hil", "--target", "udp:127.0.0.1:1", "--duration", "1", *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and why in err[0] and err[0].startswith("attitude-bridge hil: error")

@@ -23,7 +23,7 @@ def integrate_rates(profile, t_end: float, dt: float) -> tuple[np.ndarray, np.nd
     return q, profile.truth(np.array([t[-1] + dt])).q[0]
 
 
-@pytest.mark.parametrize("name", ["static", "tilt", "flight", "aggressive"])
+@pytest.mark.parametrize("name", ["static", "tilt", "flight", "gentle", "aggressive"])
 def test_integrating_true_rates_reproduces_true_attitude(name):
     profile = make_profile(name, 40.0)
     q, truth = integrate_rates(profile, 40.0, 1e-3)
@@ -87,7 +87,7 @@ def test_static_and_tilt_specific_force():
     assert math.degrees(math.asin(f[0] / G)) == pytest.approx(TILT_PITCH_DEG)
 
 
-@pytest.mark.parametrize("name", ["flight", "aggressive"])
+@pytest.mark.parametrize("name", ["flight", "gentle", "aggressive"])
 def test_position_velocity_acceleration_are_derivatives(name):
     profile = make_profile(name, 30.0)
     dt = 1e-5  # the jerk steps at ramp ends limit a central difference to O(jerk * dt)
@@ -98,8 +98,8 @@ def test_position_velocity_acceleration_are_derivatives(name):
     assert np.allclose((b.velocity_ned - a.velocity_ned) / (2 * dt), mid.accel_ned, atol=1e-4)
 
 
-def test_flight_takes_off_and_manoeuvres():
-    truth = make_profile("flight", 60.0).truth(np.arange(0.0, 60.0, 0.01))
+def test_gentle_takes_off_and_manoeuvres():
+    truth = make_profile("gentle", 60.0).truth(np.arange(0.0, 60.0, 0.01))
     euler = np.degrees(quat.to_euler(truth.q))
     assert truth.position_ned[:, 2].min() < -14.0  # take-off to 10 m plus a 5 m climb
     assert np.ptp(euler[:, 0]) > 40.0 and np.ptp(euler[:, 1]) > 30.0
@@ -120,4 +120,35 @@ def test_earth_field_direction():
     assert math.degrees(math.atan2(b[2], math.hypot(b[0], b[1]))) == pytest.approx(65.0)
     assert math.degrees(math.atan2(b[1], b[0])) == pytest.approx(3.0)
     with pytest.raises(ValueError):
-        Environment(field_ut=0.0)
+        Environment(field_ut=0.0, inclination_deg=65.0, declination_deg=3.0)
+    with pytest.raises(ValueError, match="together"):
+        Environment(declination_deg=3.0)  # a field is given whole or not at all
+    with pytest.raises(ValueError, match="home"):
+        Environment(latitude_deg=95.0)
+
+
+def test_default_field_is_the_world_magnetic_model_at_home():
+    """The emulated compass sees the WMM field at its home position and date."""
+    from bridge.emulator import emulator_declination_deg
+    from imu import geomag
+
+    env = Environment()
+    wmm = geomag.field_at(env.latitude_deg, env.longitude_deg, env.ground_altitude_m, env.date)
+    b = env.field_ned_gauss()
+    assert b * 1e5 == pytest.approx(np.array([wmm.north_nt, wmm.east_nt, wmm.down_nt]), rel=1e-9)
+    assert env.magnetic_declination_deg == pytest.approx(wmm.declination_deg)
+    assert emulator_declination_deg() == pytest.approx(wmm.declination_deg)
+    # another place, another field: Sydney's declination is ~13° east, dip upwards
+    sydney = Environment(latitude_deg=-33.87, longitude_deg=151.21, ground_altitude_m=20.0)
+    assert sydney.magnetic_declination_deg > 10.0 and sydney.field_ned_gauss()[2] < 0.0
+
+
+def test_geodetic_position_of_offsets_from_home():
+    env = Environment()
+    lat, lon, alt = env.geodetic(np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0],
+                                           [0.0, 1000.0, -10.0]]))
+    assert (lat[0], lon[0], alt[0]) == (env.latitude_deg, env.longitude_deg, 488.0)
+    # 1 km north is ~0.00899° of latitude at 47°N (WGS-84 meridian radius 6.367e6 m)
+    assert lat[1] - lat[0] == pytest.approx(0.008993, abs=2e-6)
+    assert lon[2] - lon[0] == pytest.approx(0.013254, abs=2e-5)
+    assert alt[2] == pytest.approx(498.0)

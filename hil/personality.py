@@ -1,0 +1,88 @@
+"""Which flight controller the emulated board pretends to be, on the link.
+
+A listener (the bridge, a ground station) meets very different autopilots; the
+emulator can be each of them so that a listener's negotiation is tested against what
+the real ones do (PX4 and ArduPilot behaviour taken from their MAVLink sources):
+
+* ``stm32`` — the seeds' hobby board (MAV_AUTOPILOT_GENERIC): raw MPU6050/HMC5883L
+  counts in RAW_IMU at every sample, the seeds' 6-axis Mahony ``IMUupdate`` on board,
+  ATTITUDE at 50 Hz. Its small firmware streams what it has and denies the rest; it
+  has no parameters.
+* ``px4`` — MAV_AUTOPILOT_PX4: HIGHRES_IMU (SI, FRD, gauss, gyro bias removed with its
+  estimator's bias) at 50 Hz until asked otherwise, ATTITUDE and ATTITUDE_QUATERNION
+  from its onboard estimator (a Mahony-type filter like PX4's attitude_estimator_q).
+  It has no RAW_IMU stream: ``set_message_interval`` finds no stream of that id and
+  the command is answered MAV_RESULT_FAILED. Declination parameter ``EKF2_MAG_DECL``
+  [deg].
+* ``ardupilot`` — MAV_AUTOPILOT_ARDUPILOTMEGA: RAW_IMU in ArduPilot's units (mG, mrad/s,
+  mGauss, FRD) and SCALED_IMU2, ATTITUDE from its onboard filter; unknown message ids
+  are MAV_RESULT_FAILED; intervals are kept in whole milliseconds (at least 1 ms).
+  Declination parameter ``COMPASS_DEC`` [rad].
+
+Every personality also sends SCALED_PRESSURE, the GPS messages when a GPS is fitted,
+and the emulator's HIL_STATE_QUATERNION truth.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+os.environ["MAVLINK20"] = "1"
+from pymavlink.dialects.v20 import common as mavlink
+
+AUTOPILOTS = ("stm32", "px4", "ardupilot")
+#: Streams every personality has, at their natural rate unless asked otherwise.
+COMMON_STREAMS = ("SCALED_PRESSURE", "GPS_RAW_INT", "GLOBAL_POSITION_INT",
+                  "LOCAL_POSITION_NED", "HIL_STATE_QUATERNION")
+#: A stream at its natural rate: every sample / reading / fix.
+NATURAL = None
+
+
+@dataclass(frozen=True)
+class Personality:
+    name: str
+    autopilot: int  # MAV_AUTOPILOT_* in HEARTBEAT
+    imu_messages: tuple[str, ...]  # IMU streams it can send (first: its default)
+    attitude_messages: tuple[str, ...]  # its onboard estimate
+    #: Initial interval [s] per stream: NATURAL (every sample/reading/fix) or seconds.
+    defaults: dict[str, float | None]
+    refused_result: int  # COMMAND_ACK result for a message it has no stream of
+    declination_param: str | None  # its magnetic declination parameter, if any
+    declination_unit: str = "deg"  # "deg" or "rad"
+    whole_ms: bool = False  # intervals kept in whole milliseconds (ArduPilot)
+
+    @property
+    def streams(self) -> tuple[str, ...]:
+        return self.imu_messages + self.attitude_messages + COMMON_STREAMS
+
+
+STM32 = Personality(
+    name="stm32", autopilot=mavlink.MAV_AUTOPILOT_GENERIC,
+    imu_messages=("RAW_IMU", "SCALED_IMU", "HIGHRES_IMU"), attitude_messages=("ATTITUDE",),
+    defaults={"ATTITUDE": 0.02}, refused_result=mavlink.MAV_RESULT_DENIED,
+    declination_param=None)
+
+PX4 = Personality(
+    name="px4", autopilot=mavlink.MAV_AUTOPILOT_PX4,
+    imu_messages=("HIGHRES_IMU", "SCALED_IMU"),
+    attitude_messages=("ATTITUDE", "ATTITUDE_QUATERNION"),
+    defaults={"HIGHRES_IMU": 0.02, "ATTITUDE": 0.02, "ATTITUDE_QUATERNION": 0.02},
+    refused_result=mavlink.MAV_RESULT_FAILED, declination_param="EKF2_MAG_DECL")
+
+ARDUPILOT = Personality(
+    name="ardupilot", autopilot=mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+    imu_messages=("RAW_IMU", "SCALED_IMU2"), attitude_messages=("ATTITUDE",),
+    defaults={"RAW_IMU": 0.02, "SCALED_IMU2": 0.02, "ATTITUDE": 0.02},
+    refused_result=mavlink.MAV_RESULT_FAILED, declination_param="COMPASS_DEC",
+    declination_unit="rad", whole_ms=True)
+
+PERSONALITIES = {p.name: p for p in (STM32, PX4, ARDUPILOT)}
+
+
+def personality(name: str) -> Personality:
+    """The personality by name; ValueError listing the valid ones."""
+    try:
+        return PERSONALITIES[name]
+    except KeyError:
+        raise ValueError(f"unknown autopilot {name!r}; valid: {', '.join(AUTOPILOTS)}") from None

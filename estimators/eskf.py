@@ -41,8 +41,10 @@ walk and a velocity random walk.
   carries the attitude; after ``velocity_reset_time`` of rejections the velocity is
   re-anchored at zero, which changes no attitude.
 * *Rest* (VQF's rest detector and thresholds: gyro and accelerometer within
-  ``rest_gyr_th``/``rest_acc_th`` of their low-pass for ``rest_time``): the low-passed
-  gyro measures the bias, and the velocity is zero.
+  ``rest_gyr_th``/``rest_acc_th`` of their low-pass for ``rest_time``, and the low-passed
+  gyro within ``rest_bias_th`` of the bias estimate, so that a steady turn is not rest):
+  the low-passed gyro measures the bias. Not the velocity: a multirotor cruising at
+  constant speed is exactly as steady as one standing on the ground.
 * *Magnetometer, heading only*: the heading of the field rotated into the world frame
   is a measurement of ``δθ_z``; its gain on ``δθ_x, δθ_y`` is zeroed (Joseph form keeps
   ``P`` consistent), so a disturbed field cannot tilt the estimate, while the bias
@@ -117,11 +119,12 @@ class EskfParams(CommonParams):
     rest_acc_th: float = param(0.5, "rest: accelerometer deviation from its low-pass below "
                                     "this [m/s^2]")
     rest_time: float = param(1.5, "rest: conditions hold this long [s]")
+    rest_bias_th: float = param(2.0 * _DEG, "rest: low-passed gyro within this of the bias "
+                                            "estimate, per axis [rad/s] (VQF's bias clip: a "
+                                            "steady turn is not rest)")
     rest_tau: float = param(0.5, "time constant [s] of the rest-detection low-passes")
     rest_noise: float = param(0.03 * _DEG, "rest: gyro-bias measurement noise density "
                                            "[rad/s·sqrt(s)]")
-    rest_velocity_noise: float = param(0.01, "rest: zero-velocity measurement noise "
-                                             "density [m/s·sqrt(s)]")
 
 
 _PARAM_FIELDS = (
@@ -130,40 +133,51 @@ _PARAM_FIELDS = (
     "vel_aid_noise", "drag", "drag_sigma_init", "drag_noise", "vertical_velocity_prior",
     "mag_noise", "mag_norm_th", "mag_dip_th", "mag_ref_time", "mag_new_time",
     "mag_ref_tau", "rest_gyr_th", "rest_acc_th", "rest_time", "rest_tau", "rest_noise",
-    "rest_velocity_noise", "aid_timeout",
+    "rest_bias_th", "aid_timeout",
 )
 (_P_PERIOD, _P_GRAV, _P_GYR_N, _P_B_RW, _P_B_INIT, _P_B_MAX, _P_TILT0, _P_HEAD0,
  _P_V_RW, _P_V_PRIOR, _P_V_RESET, _P_AID_N, _P_DRAG, _P_DRAG0, _P_DRAG_N, _P_VZ_PRIOR,
  _P_MAG_N, _P_MAG_NORM, _P_MAG_DIP, _P_MAG_REF_T, _P_MAG_NEW_T, _P_MAG_REF_TAU,
  _P_REST_GYR, _P_REST_ACC, _P_REST_T, _P_REST_TAU, _P_REST_N,
- _P_REST_V_N, _P_AID_TIMEOUT) = range(len(_PARAM_FIELDS))
+ _P_REST_BIAS, _P_AID_TIMEOUT) = range(len(_PARAM_FIELDS))
 
 # --- private state layout -------------------------------------------------------------
-_S = _core.PRIVATE
-_V = _S  # 3: velocity, magnetic NED [m/s]
-_MUS = _S + 3  # drag coefficient μ [1/s]
-_P = _S + 4  # 100: covariance of the error state, row-major 10×10
-_ACC_T = _S + 104  # time integrated since the last Kalman update [s]
-_DV = _S + 105  # 3: ∫R·f dt over that time (world)
-_FB = _S + 108  # 3: ∫f dt (body), for the drag measurement
-_GLP = _S + 111  # 3: gyro low-pass (rest detection; the bias it measures)
-_ALP = _S + 114  # 3: accelerometer low-pass (rest detection)
-_REST_T = _S + 117  # how long rest conditions have held [s]
-_LP_OK = _S + 118  # 1 once the rest low-passes are seeded
-_MN_REF, _MD_REF, _REF_OK = _S + 119, _S + 120, _S + 121  # field norm/dip reference
-_MN_C, _MD_C, _CAND_T = _S + 122, _S + 123, _S + 124  # candidate field, how long held
-_V_REJ_T = _S + 125  # velocity information rejected for this long [s]
-_AID_T = _S + 126  # RUN_T of the last velocity aiding measurement (-inf: none)
-_PEND = _S + 127  # 3: velocity aiding measurement waiting for the next update (NaN: none)
-_PEND_AGE = _S + 130  # its age at the update [s]
-_MAG = _S + 131  # 3: last usable magnetometer sample of the period
-_MAG_OK = _S + 134  # 1 if _MAG holds one
-_H = _S + 135  # 30: scratch, measurement rows (3 × 10)
-_PHT = _S + 165  # 30: scratch, P·Hᵀ (10 × 3)
-_K = _S + 195  # 30: scratch, gain (10 × 3)
-_X = _S + 225  # 10: scratch, error-state correction
-_ACC_N = _S + 235  # usable accelerometer samples in the period
-_STATE_SIZE = _S + 236
+def _layout(*sizes: int) -> tuple[int, ...]:
+    """Consecutive offsets after the common state for blocks of the given sizes."""
+    offsets, at = [], _core.PRIVATE
+    for size in sizes:
+        offsets.append(at)
+        at += size
+    return (*offsets, at)
+
+
+(_V,  # 3: velocity, magnetic NED [m/s]
+ _MUS,  # drag coefficient μ [1/s]
+ _P,  # covariance of the error state, row-major _NX × _NX
+ _ACC_T,  # time integrated since the last Kalman update [s]
+ _ACC_N,  # usable accelerometer samples in that time
+ _DV,  # 3: ∫R·f dt over that time (world)
+ _FB,  # 3: ∫f dt (body, as measured), for the drag measurement
+ _GLP,  # 3: gyro low-pass (rest detection; the bias it measures)
+ _ALP,  # 3: accelerometer low-pass (rest detection)
+ _REST_T,  # how long rest conditions have held [s]
+ _LP_OK,  # 1 once the rest low-passes are seeded
+ _MN_REF, _MD_REF, _REF_OK,  # field norm/dip reference, 1 once set
+ _MN_C, _MD_C, _CAND_T,  # candidate field norm/dip, how long it has held [s]
+ _V_REJ_T,  # velocity information rejected for this long [s]
+ _AID_T,  # RUN_T of the last velocity aiding measurement (-inf: none)
+ _PEND,  # 3: velocity aiding measurement waiting for the next update (NaN: none)
+ _PEND_AGE,  # its age at the update [s]
+ _MAG,  # 3: newest magnetometer reading of the period
+ _MAG_OK,  # 1 if _MAG holds one
+ _MAG_PREV,  # 3: the previous magnetometer sample as given (repeats are not new)
+ _MAG_DT,  # time since the last magnetometer update [s]
+ _H,  # scratch: measurement rows (3 × _NX)
+ _PHT,  # scratch: P·Hᵀ (_NX × 3)
+ _K,  # scratch: gain (_NX × 3)
+ _X,  # scratch: error-state correction (_NX)
+ _STATE_SIZE) = _layout(3, 1, _NX * _NX, 1, 1, 3, 3, 3, 3, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 3,
+                        1, 3, 1, 3, 1, 3 * _NX, 3 * _NX, 3 * _NX, _NX)
 
 
 @_core.kernel(inline="always")
@@ -195,7 +209,8 @@ def _rotation(state: np.ndarray) -> tuple:
 
 @_core.kernel
 def _predict_covariance(state: np.ndarray, params: np.ndarray, T: float) -> None:
-    """P ← F·P·Fᵀ + Q over one update period, F = I + [δθ ← −R·T·δb, δv ← −[ΔV]×·δθ].
+    """P ← F·P·Fᵀ + Q over one update period,
+    F = I + [δθ ← −R·T·δb, δv ← −[ΔV]×·δθ].
 
     In place: the velocity rows/columns are updated first because they read the attitude
     rows/columns as they were; the attitude ones then read the (unchanged) bias ones."""
@@ -448,7 +463,8 @@ def _velocity_prior(state: np.ndarray, params: np.ndarray, T: float, sigma: floa
 
 @_core.kernel
 def _rest_update(state: np.ndarray, params: np.ndarray, T: float) -> None:
-    """At rest the low-passed gyro is the bias and the velocity is zero."""
+    """At rest the low-passed gyro is the bias. (Not a zero-velocity update: a vehicle
+    cruising steadily looks just as still to the gyro and accelerometer.)"""
     _clear_rows(state, 3)
     for i in range(3):
         state[_H + i * _NX + _BI + i] = 1.0
@@ -456,13 +472,6 @@ def _rest_update(state: np.ndarray, params: np.ndarray, T: float) -> None:
     _kalman_update(state, params, 3, state[_GLP] - state[_core.B0],
                    state[_GLP + 1] - state[_core.B0 + 1], state[_GLP + 2] - state[_core.B0 + 2],
                    rn, rn, rn, 0.0)
-    _clear_rows(state, 3)
-    for i in range(3):
-        state[_H + i * _NX + _VE + i] = 1.0
-    rn = params[_P_REST_V_N] ** 2 / T
-    _kalman_update(state, params, 3, -state[_V], -state[_V + 1], -state[_V + 2],
-                   rn, rn, rn, 0.0)
-    state[_V_REJ_T] = 0.0
 
 
 @_core.kernel
@@ -509,7 +518,9 @@ def _heading_update(state: np.ndarray, params: np.ndarray, T: float) -> None:
         state[_core.MAG_REJ] = 1.0
         return
     nu = -math.atan2(ey, ex)  # magnetic north is +x: the field's heading is the error
-    rn = params[_P_MAG_N] ** 2 / T
+    # noise density over the time this reading stands for (one per update at most)
+    rn = params[_P_MAG_N] ** 2 / max(state[_MAG_DT], T)
+    state[_MAG_DT] = 0.0
     p22 = state[_pi(2, 2)]
     s = p22 + rn
     if nu * nu > _GATE[1] * s:
@@ -545,7 +556,11 @@ def _rest_detection(state: np.ndarray, params: np.ndarray, gx: float, gy: float,
     state[_GLP + 1] += k * (gy - state[_GLP + 1])
     state[_GLP + 2] += k * (gz - state[_GLP + 2])
     dg = (gx - state[_GLP]) ** 2 + (gy - state[_GLP + 1]) ** 2 + (gz - state[_GLP + 2]) ** 2
-    steady = acc_ok and dg < params[_P_REST_GYR] ** 2
+    lim = params[_P_REST_BIAS]
+    steady = acc_ok and dg < params[_P_REST_GYR] ** 2 \
+        and abs(state[_GLP] - state[_core.B0]) < lim \
+        and abs(state[_GLP + 1] - state[_core.B0 + 1]) < lim \
+        and abs(state[_GLP + 2] - state[_core.B0 + 2]) < lim
     if acc_ok:
         state[_ALP] += k * (ax - state[_ALP])
         state[_ALP + 1] += k * (ay - state[_ALP + 1])
@@ -605,15 +620,15 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
     b0, b1, b2 = state[_core.B0], state[_core.B0 + 1], state[_core.B0 + 2]
     grav = params[_P_GRAV]
     if acc_ok:
+        state[_FB] += ax * dt
+        state[_FB + 1] += ay * dt
+        state[_FB + 2] += az * dt
+        state[_ACC_N] += 1.0
         # strapdown: specific force rotated with the attitude at the middle of the step
         f0x, f0y, f0z = _core.body_to_world(state, ax, ay, az)
         _core.integrate_exact(state, gx - b0, gy - b1, gz - b2, dt)
         f1x, f1y, f1z = _core.body_to_world(state, ax, ay, az)
         fx, fy, fz = 0.5 * (f0x + f1x), 0.5 * (f0y + f1y), 0.5 * (f0z + f1z)
-        state[_FB] += ax * dt
-        state[_FB + 1] += ay * dt
-        state[_FB + 2] += az * dt
-        state[_ACC_N] += 1.0
     else:
         # No usable specific force (NaN, saturated): the gyro alone carries the attitude;
         # a period without any usable sample makes no velocity statement (_kalman_step).
@@ -627,9 +642,15 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
     state[_DV + 2] += fz * dt
     state[_ACC_T] += dt
     _rest_detection(state, params, gx, gy, gz, ax, ay, az, acc_ok, dt)
-    if mag_ok:
+    state[_MAG_DT] += dt
+    if mag_ok and not (mx == state[_MAG_PREV] and my == state[_MAG_PREV + 1]
+                       and mz == state[_MAG_PREV + 2]):
+        # Only a new reading is a measurement: a magnetometer slower than the IMU is
+        # often repeated in every IMU message (RAW_IMU), and a repeat carries nothing.
         state[_MAG], state[_MAG + 1], state[_MAG + 2] = mx, my, mz
         state[_MAG_OK] = 1.0
+    if mag_ok:
+        state[_MAG_PREV], state[_MAG_PREV + 1], state[_MAG_PREV + 2] = mx, my, mz
     if math.isfinite(vx) or math.isfinite(vy) or math.isfinite(vz):
         state[_PEND], state[_PEND + 1], state[_PEND + 2] = vx, vy, vz
         state[_PEND_AGE] = v_age
@@ -666,7 +687,7 @@ class Eskf(Estimator):
                     "vel_aid_noise", "drag_sigma_init", "drag_noise",
                     "vertical_velocity_prior", "mag_noise", "mag_norm_th", "mag_dip_th",
                     "mag_ref_tau", "rest_gyr_th", "rest_acc_th", "rest_tau", "rest_noise",
-                    "rest_velocity_noise")
+                    "rest_bias_th")
         for f in positive:
             value = getattr(p, f)
             if not (math.isfinite(value) and value > 0.0):

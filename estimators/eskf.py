@@ -70,6 +70,10 @@ from .base import CommonParams, Estimator, G, param
 from .registry import register
 
 _DEG = math.pi / 180.0
+#: ``drag`` for a vehicle known to be a multirotor (MAVLink MAV_TYPE quadrotor, hexarotor,
+#: ...): the prior mean of μ. Small multirotors have 0.3-1 1/s; μ is estimated from there,
+#: so the value only has to be the right order of magnitude.
+MULTIROTOR_DRAG_PER_S = 0.5
 # Chi-square 99.9 % points for 1, 2 and 3 degrees of freedom: a measurement further from
 # its prediction than this, in its own predicted uncertainty, is an outlier.
 _GATE = (0.0, 10.828, 13.816, 16.266)

@@ -1,0 +1,116 @@
+"""Which datagrams are worth parsing at all: refuse floods for the price of a header peek.
+
+Parsing and estimating cost microseconds per message; a flood of 100 k messages/s from
+one sender would take the whole CPU and starve the vehicle the bridge is there for.
+So before a UDP datagram is parsed, its first frame's header is peeked (the sender's
+system id and the message id sit at fixed offsets, MAVLink 1 and 2 alike):
+
+* a system id that is not an admitted vehicle gets only its HEARTBEATs through (a
+  ground station or a peer bridge announces itself with them and so earns our output;
+  anything else it sends is of no use to us) — refused as ``not_vehicle``;
+* every system id has its own token bucket of ``rate`` messages per second (burst
+  ``burst``): a sender over budget is refused as ``over_budget`` and cannot use up the
+  time of another. Buckets are indexed by the one-byte system id, so their number is
+  bounded whatever the sender claims;
+* bytes that are no MAVLink frame at all share one small bucket (they are parsed only
+  to be counted).
+
+The header is not authenticated at this point: a flood that claims the vehicle's own
+system id shares the vehicle's budget (signing is the defence against impersonation);
+everything admitted is still checked in full by the parser.
+
+Until a vehicle is admitted (learning the first autopilot heard), every system id may
+send anything within its budget, so that the service can see who is there.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+MAGIC_V1, MAGIC_V2 = 0xFE, 0xFD
+HEARTBEAT_ID = 0
+#: Budget of datagrams that are not MAVLink frames, and of heartbeats from non-vehicles.
+JUNK_RATE, JUNK_BURST = 200.0, 200.0
+OTHER_RATE, OTHER_BURST = 20.0, 20.0
+
+
+@dataclass
+class AdmissionStats:
+    """Datagrams refused before parsing, by cause."""
+
+    not_vehicle: int = 0
+    over_budget: int = 0
+    junk_over_budget: int = 0
+    by_sysid: dict[int, int] = field(default_factory=dict)  # refusals per claimed sysid
+
+    def to_dict(self) -> dict[str, int]:
+        return {"not_vehicle": self.not_vehicle, "over_budget": self.over_budget,
+                "junk_over_budget": self.junk_over_budget}
+
+
+class Admission:
+    """The gate in front of a UDP link's parser (see module docstring)."""
+
+    def __init__(self, rate: float, burst: float | None = None) -> None:
+        self.rate = float(rate)
+        self.burst = float(burst if burst is not None else max(rate * 0.25, 64.0))
+        self.vehicles: set[int] = set()
+        self.stats = AdmissionStats()
+        now = time.monotonic()
+        self._tokens = [self.burst] * 256
+        self._other_tokens = [OTHER_BURST] * 256
+        self._stamp = [now] * 256
+        self._other_stamp = [now] * 256
+        self._junk = (JUNK_BURST, now)
+
+    def admit_vehicle(self, sysid: int) -> None:
+        """From now on only these system ids send more than heartbeats."""
+        self.vehicles.add(sysid)
+
+    def __call__(self, data: bytes) -> bool:
+        n = len(data)
+        magic = data[0] if n else 0
+        if magic == MAGIC_V2 and n >= 10:
+            sysid = data[5]
+            msg_id = data[7] | data[8] << 8 | data[9] << 16
+        elif magic == MAGIC_V1 and n >= 6:
+            sysid = data[3]
+            msg_id = data[5]
+        else:
+            return self._junk_ok()
+        vehicles = self.vehicles
+        if vehicles and sysid not in vehicles:
+            if msg_id != HEARTBEAT_ID:
+                self.stats.not_vehicle += 1
+                return False
+            return self._take(sysid, self._other_tokens, self._other_stamp, OTHER_RATE,
+                              OTHER_BURST)
+        return self._take(sysid, self._tokens, self._stamp, self.rate, self.burst)
+
+    def _take(self, sysid: int, tokens: list[float], stamps: list[float], rate: float,
+              burst: float) -> bool:
+        now = time.monotonic()
+        have = tokens[sysid] + (now - stamps[sysid]) * rate
+        stamps[sysid] = now
+        if have > burst:
+            have = burst
+        if have < 1.0:
+            tokens[sysid] = have
+            self.stats.over_budget += 1
+            by = self.stats.by_sysid
+            by[sysid] = by.get(sysid, 0) + 1
+            return False
+        tokens[sysid] = have - 1.0
+        return True
+
+    def _junk_ok(self) -> bool:
+        have, stamp = self._junk
+        now = time.monotonic()
+        have = min(JUNK_BURST, have + (now - stamp) * JUNK_RATE)
+        if have < 1.0:
+            self._junk = (have, now)
+            self.stats.junk_over_budget += 1
+            return False
+        self._junk = (have - 1.0, now)
+        return True

@@ -21,18 +21,32 @@ everything admitted is still checked in full by the parser.
 
 Until a vehicle is admitted (learning the first autopilot heard), every system id may
 send anything within its budget, so that the service can see who is there.
+
+Under a flood (more than ``flood_rate`` refusals per second) even the peek is too
+expensive — the socket buffer overflows and the kernel drops the vehicle's packets with
+the flood's — so the link attaches the same rule as a kernel socket filter
+(:mod:`bridge.kernelfilter`); it passes a 1/SAMPLE sample of what it refuses, counted
+here as ``kernel_refused_est`` (SAMPLE each). The filter comes off after ``FILTER_HOLD_S``
+once the sampled refusals fall below the flood rate.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+
+from .kernelfilter import MARK_LEN, SAMPLE
 
 MAGIC_V1, MAGIC_V2 = 0xFE, 0xFD
 HEARTBEAT_ID = 0
 #: Budget of datagrams that are not MAVLink frames, and of heartbeats from non-vehicles.
 JUNK_RATE, JUNK_BURST = 200.0, 200.0
 OTHER_RATE, OTHER_BURST = 20.0, 20.0
+#: Refusals per second that count as a flood (the kernel filter goes on).
+FLOOD_RATE = 2000.0
+FLOOD_WINDOW_S = 0.1
+FILTER_HOLD_S = 10.0
 
 
 @dataclass
@@ -42,18 +56,28 @@ class AdmissionStats:
     not_vehicle: int = 0
     over_budget: int = 0
     junk_over_budget: int = 0
+    kernel_refused_est: int = 0  # refused by the kernel filter (SAMPLE per sampled one)
+    kernel_filter: bool = False  # the kernel filter is on now
+    floods: int = 0  # times the kernel filter went on
     by_sysid: dict[int, int] = field(default_factory=dict)  # refusals per claimed sysid
 
-    def to_dict(self) -> dict[str, int]:
+    def to_dict(self) -> dict[str, int | bool]:
         return {"not_vehicle": self.not_vehicle, "over_budget": self.over_budget,
-                "junk_over_budget": self.junk_over_budget}
+                "junk_over_budget": self.junk_over_budget,
+                "kernel_refused_est": self.kernel_refused_est,
+                "kernel_filter": self.kernel_filter, "floods": self.floods}
 
 
 class Admission:
     """The gate in front of a UDP link's parser (see module docstring)."""
 
-    def __init__(self, rate: float, burst: float | None = None) -> None:
+    def __init__(self, rate: float, burst: float | None = None,
+                 flood_rate: float = FLOOD_RATE) -> None:
         self.rate = float(rate)
+        self.flood_rate = flood_rate
+        #: Called with the admitted system ids when a flood starts / with None when the
+        #: filter may come off (the link attaches / detaches the kernel filter).
+        self.on_flood: Callable[[set[int] | None], bool] | None = None
         self.burst = float(burst if burst is not None else max(rate * 0.25, 64.0))
         self.vehicles: set[int] = set()
         self.stats = AdmissionStats()
@@ -63,13 +87,59 @@ class Admission:
         self._stamp = [now] * 256
         self._other_stamp = [now] * 256
         self._junk = (JUNK_BURST, now)
+        self._window_start = now
+        self._window_refused = 0
+        self._filter_since = 0.0
+        self._sampled_since_tick = 0
 
     def admit_vehicle(self, sysid: int) -> None:
         """From now on only these system ids send more than heartbeats."""
         self.vehicles.add(sysid)
+        self._refilter()
+
+    def forget_vehicle(self, sysid: int) -> None:
+        self.vehicles.discard(sysid)
+        self._refilter()
+
+    def _refilter(self) -> None:
+        if self.stats.kernel_filter and self.on_flood is not None:
+            self.stats.kernel_filter = self.on_flood(set(self.vehicles) or None)
+
+    def _refused(self) -> None:
+        """Count one refusal of a non-vehicle; start the kernel filter under a flood."""
+        self.stats.not_vehicle += 1
+        self._window_refused += 1
+        if self.stats.kernel_filter or self._window_refused < self.flood_rate * FLOOD_WINDOW_S:
+            return
+        now = time.monotonic()
+        if now - self._window_start > FLOOD_WINDOW_S:
+            self._window_start, self._window_refused = now, 0
+            return
+        if self.on_flood is not None and self.vehicles and self.on_flood(set(self.vehicles)):
+            self.stats.kernel_filter = True
+            self.stats.floods += 1
+            self._filter_since = now
+            self._sampled_since_tick = 0
+
+    def tick(self, elapsed: float) -> None:
+        """Called about once a second: take the kernel filter off once the flood ended."""
+        if not self.stats.kernel_filter or elapsed <= 0:
+            self._window_start, self._window_refused = time.monotonic(), 0
+            return
+        rate = self._sampled_since_tick * SAMPLE / elapsed
+        self._sampled_since_tick = 0
+        if rate < self.flood_rate and \
+                time.monotonic() - self._filter_since > FILTER_HOLD_S and \
+                self.on_flood is not None:
+            self.on_flood(None)
+            self.stats.kernel_filter = False
 
     def __call__(self, data: bytes) -> bool:
         n = len(data)
+        if n == MARK_LEN and self.stats.kernel_filter:  # the kernel filter's sample
+            self.stats.kernel_refused_est += SAMPLE
+            self._sampled_since_tick += 1
+            return False
         magic = data[0] if n else 0
         if magic == MAGIC_V2 and n >= 10:
             sysid = data[5]
@@ -82,7 +152,7 @@ class Admission:
         vehicles = self.vehicles
         if vehicles and sysid not in vehicles:
             if msg_id != HEARTBEAT_ID:
-                self.stats.not_vehicle += 1
+                self._refused()
                 return False
             return self._take(sysid, self._other_tokens, self._other_stamp, OTHER_RATE,
                               OTHER_BURST)

@@ -32,6 +32,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from .codec import MavCodec, SigningConfig
+from .kernelfilter import KernelFilter
 from .mav import MAVLinkMessage
 
 log = logging.getLogger(__name__)
@@ -42,8 +43,9 @@ PEER_REFRESH_S = 0.5
 MAX_PEERS = 32
 #: A stream link that delivers no valid message for this long is reconnected.
 IDLE_TIMEOUT_S = 5.0
-#: Outgoing bytes allowed to queue on a stream link before new messages are dropped.
-MAX_WRITE_BUFFER = 256 * 1024
+#: Outgoing bytes allowed to queue on a stream link before new messages are dropped (and
+#: the kernel's send buffer of a TCP link): queued attitudes only grow stale.
+MAX_WRITE_BUFFER = 64 * 1024
 BACKOFF_START_S = 0.25
 UDP_RECEIVE_BUFFER = 4 * 1024 * 1024
 MAX_DATAGRAMS_PER_WAKEUP = 512  # then let other callbacks run
@@ -111,6 +113,7 @@ class LinkStats:
     send_errors: int = 0  # OS errors while sending (e.g. ICMP port unreachable)
     reconnects: int = 0
     idle_timeouts: int = 0  # stream connections given up for delivering nothing
+    write_stalls: int = 0  # stream connections given up because the peer stopped reading
     gate_refused: int = 0  # datagrams refused before parsing (see the gate's counts)
     peers: int = 0  # UDP peers currently answered
     peers_refused: int = 0  # new peers not answered because the table was full
@@ -211,6 +214,19 @@ class UdpLink(Link):
         self._target: tuple | None = None
         self._peer_list: list[tuple] = []
         self._peers_valid_until = 0.0
+        self._filter = KernelFilter()
+
+    def kernel_filter(self, vehicles: set[int] | None) -> bool:
+        """Refuse, in the kernel, what only these vehicles may send (None: detach)."""
+        if self._sock is None:
+            return False
+        if vehicles is None:
+            self._filter.detach(self._sock)
+            return False
+        ok = self._filter.attach(self._sock, vehicles)
+        if ok:
+            log.warning("%s: flood of refused datagrams; kernel filter on", self.name)
+        return ok
 
     @property
     def connected(self) -> bool:
@@ -403,6 +419,7 @@ class TcpLink(_StreamLink):
                  options: LinkOptions | None = None) -> None:
         super().__init__(url, on_message, signing, options)
         self._writer: asyncio.StreamWriter | None = None
+        self._blocked_since: float | None = None  # our output backed up since then
 
     @property
     def connected(self) -> bool:
@@ -412,7 +429,10 @@ class TcpLink(_StreamLink):
         reader, self._writer = await asyncio.wait_for(
             asyncio.open_connection(self.url.host, self.url.port),
             max(1.0, self.options.idle_timeout_s))
-        _keepalive(self._writer.get_extra_info("socket"), self.options.idle_timeout_s)
+        sock = self._writer.get_extra_info("socket")
+        _keepalive(sock, self.options.idle_timeout_s)
+        with contextlib.suppress(OSError, AttributeError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, MAX_WRITE_BUFFER)
         log.info("%s: connected", self.name)
         self.codec.reset_parser()  # drop a partial frame left by the old connection
         while True:
@@ -427,8 +447,15 @@ class TcpLink(_StreamLink):
             if self._idle():
                 raise ConnectionError(
                     f"no valid message for {self.options.idle_timeout_s:g} s")
+            blocked = self._blocked_since
+            if blocked is not None and \
+                    time.monotonic() - blocked >= self.options.idle_timeout_s:
+                self.stats.write_stalls += 1
+                raise ConnectionError(f"peer has not read our output for "
+                                      f"{self.options.idle_timeout_s:g} s")
 
     def _disconnect(self) -> None:
+        self._blocked_since = None
         if self._writer is not None:
             self._writer.transport.abort()  # a peer that stopped reading: do not wait
             self._writer = None
@@ -439,7 +466,10 @@ class TcpLink(_StreamLink):
             return
         if writer.transport.get_write_buffer_size() > MAX_WRITE_BUFFER:
             self.stats.send_dropped += 1
+            if self._blocked_since is None:
+                self._blocked_since = time.monotonic()
             return
+        self._blocked_since = None
         writer.write(data)
 
 

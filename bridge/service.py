@@ -91,6 +91,8 @@ class BridgeService:
                                     options)
         self.admission = Admission(cfg.max_source_rate)
         self.link.gate = self.admission
+        if isinstance(self.link, UdpLink):
+            self.admission.on_flood = self.link.kernel_filter
         self.outs: list[Link] = [open_link(u, self._on_out_message, self.signing, options)
                                  for u in cfg.outs]
         for out in self.outs:
@@ -220,7 +222,7 @@ class BridgeService:
             for old in current:  # a bare IMU stream gives way to a real autopilot
                 self._drop_state(old)
                 del self.vehicles[old.sysid]
-                self.admission.vehicles.discard(old.sysid)
+                self.admission.forget_vehicle(old.sysid)
                 self.refused["vehicles_replaced"] += 1
             return self._add_vehicle(sysid, HEARTBEAT)
         if msg_id in IMU_MESSAGE_IDS and not self.vehicles:
@@ -451,7 +453,8 @@ class BridgeService:
              "replayed": c.replayed, "unknown_message": c.unknown_message,
              "truncated": c.truncated, "send_dropped": ls.send_dropped,
              "send_errors": ls.send_errors, "reconnects": ls.reconnects,
-             "idle_timeouts": ls.idle_timeouts, "peers": ls.peers,
+             "idle_timeouts": ls.idle_timeouts, "write_stalls": ls.write_stalls,
+             "peers": ls.peers,
              "peers_refused": ls.peers_refused, "peers_expired": ls.peers_expired,
              "gate": self.admission.stats.to_dict(), "refused": dict(self.refused),
              "vehicles": sorted(self.vehicles)}
@@ -465,6 +468,7 @@ class BridgeService:
         now = time.monotonic()
         elapsed = now - self._last_status_wall
         self._last_status_wall = now
+        self.admission.tick(elapsed)
         link = self.link_status()
         for vehicle in list(self.vehicles.values()):
             status = self.vehicle_status(vehicle, elapsed)

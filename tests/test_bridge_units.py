@@ -4,6 +4,8 @@ codec (bad bytes, signing), ingest scaling, URL/estimator parsing, comparison.""
 from __future__ import annotations
 
 import math
+import socket
+import time
 
 import numpy as np
 import pytest
@@ -14,6 +16,7 @@ from bridge.codec import MavCodec, SigningConfig, load_signing_key, signing_key_
 from bridge.compare import compare_series
 from bridge.config import BridgeConfig
 from bridge.ingest import Ingest
+from bridge.kernelfilter import MARK_LEN, SAMPLE, KernelFilter
 from bridge.links import parse_url
 from bridge.mav import mavlink
 from bridge.mqtt import MqttSettings
@@ -367,3 +370,39 @@ def test_compare_finds_lag_and_scores():
     assert c.total_deg > 1.0  # scored at zero shift: the lag shows as error
     c2 = compare_series(t, lagged, t, ref, np.arange(-0.1, 0.1, 0.002), score_at_best=True)
     assert c2.total_deg < 0.2 and c2.heading_deg == pytest.approx(c2.total_deg, rel=1e-3)
+
+
+def test_kernel_filter_keeps_vehicles_and_heartbeats_and_samples_the_rest():
+    """The socket filter on a real UDP socket: the admitted vehicle's frames and anyone's
+    HEARTBEAT pass whole; other frames are dropped but for a 1/64 sample cut to 3 bytes."""
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 * 1024 * 1024)
+    rx.bind(("127.0.0.1", 0))
+    rx.setblocking(False)
+    kf = KernelFilter()
+    assert kf.attach(rx, {1})
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    vehicle, other = mavlink.MAVLink(None, 1, 1), mavlink.MAVLink(None, 9, 1)
+    imu = mavlink.MAVLink_raw_imu_message(1000, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+    sent = {"vehicle": imu.pack(vehicle), "heartbeat": _packet(mav=other)}
+    for data in sent.values():
+        tx.sendto(data, rx.getsockname())
+    flood = imu.pack(other)
+    n = 6400
+    for _ in range(n):
+        tx.sendto(flood, rx.getsockname())
+    time.sleep(0.1)
+    got = []
+    while True:
+        try:
+            got.append(rx.recv(65536))
+        except BlockingIOError:
+            break
+    kf.detach(rx)
+    rx.close()
+    tx.close()
+    whole = [g for g in got if len(g) > MARK_LEN]
+    marks = [g for g in got if len(g) == MARK_LEN]
+    assert whole == list(sent.values())
+    assert all(m == flood[:MARK_LEN] for m in marks)
+    assert 0.5 * n / SAMPLE <= len(marks) <= 1.5 * n / SAMPLE

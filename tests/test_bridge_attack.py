@@ -142,6 +142,7 @@ async def test_reboot_at_long_uptime_restarts_and_never_publishes_a_stale_attitu
         boot0 = 2_000_000
         if system_time:
             vehicle.send(mavlink.MAVLink_system_time_message(0, boot0 // 1000 - 50))
+        returned = time.perf_counter()
         new_end = await fly(vehicle, 3.5, boot0, q0=q_after)
         await wait_until(lambda: any(m.time_boot_ms >= (new_end - 40_000) // 1000 for m
                                      in vehicle.listener.of_type("ATTITUDE_QUATERNION")))
@@ -153,9 +154,14 @@ async def test_reboot_at_long_uptime_restarts_and_never_publishes_a_stale_attitu
     assert status["flags"]["reboot"] == 1 and status["restarts"] == 1
     assert len(after) > 0.9 * 50 * (3.5 - 2.4)
     assert errors(after, boot0, q_after).max() < 5.0  # not one stale or unsettled output
-    # Back within evidence (1 s, or 0.25 s with SYSTEM_TIME) + 1 s of settling.
-    first_ms = min(m.time_boot_ms for m in after) - boot0 // 1000
-    assert first_ms <= (1400 if system_time else 2150), first_ms
+    # The first output is the sample 1 s (settling) after the return, sent when it
+    # arrives (the reboot was confirmed by then: after 1 s of evidence, 0.25 s with
+    # SYSTEM_TIME; the samples held meanwhile went through the restarted estimator).
+    assert min(m.time_boot_ms for m in after) - boot0 // 1000 == 1000
+    first_at = min(t for t, m in vehicle.listener.messages
+                   if m.get_type() == "ATTITUDE_QUATERNION" and
+                   boot0 // 1000 <= m.time_boot_ms < new_end // 1000) - returned
+    assert 0.95 <= first_at <= 1.6, first_at
     assert status["held_initialising"] >= 0.9 * RATE * 1.0
 
 
@@ -510,3 +516,54 @@ async def test_a_flood_from_another_system_id_does_not_starve_the_vehicle():
     assert 0.8 * sent <= gate["not_vehicle"] + gate["kernel_refused_est"] <= 1.2 * sent
     msgs = outputs(vehicle, t0 // 1000, end // 1000)
     assert errors(msgs, t0)[10:].max() < 2.0
+
+
+def imu_si(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Specific force [m/s^2] and field [gauss] in FRD at rest at attitude q."""
+    return (Q.rotate(Q.conjugate(q), np.array([0.0, 0.0, -9.80665])),
+            Q.rotate(Q.conjugate(q), np.array([0.25, 0.0, 0.43])))
+
+
+@async_test
+async def test_message_types_have_their_own_clocks_and_the_requested_one_wins():
+    """SCALED_IMU (ms) streams first, then HIGHRES_IMU (µs) starts: the HIGHRES stream is
+    not judged by the SCALED clock (it used to be dropped entirely) and, being the
+    requested type, becomes the primary; a stream with µs in its ms field is never
+    published (its stamps run 1000× faster than real time)."""
+    q = euler_q(8.0, -4.0, 25.0)
+    acc, mag = imu_si(q)
+    acc_mg, mag_mg = (acc / 9.80665e-3).round().astype(int), (mag * 1e3).round().astype(int)
+    async with flying(dict(out_rate=0.0, imu_message="HIGHRES_IMU"), dict()) as (
+            bridge, vehicle):
+        vehicle.send(autopilot_heartbeat())
+        for i in range(900):
+            t_ms = 1000 + 2 * i
+            if i < 300 or i % 2:
+                vehicle.send(mavlink.MAVLink_scaled_imu_message(
+                    t_ms, *acc_mg, 0, 0, 0, *mag_mg, 0))
+            if i >= 300:
+                vehicle.send(mavlink.MAVLink_highres_imu_message(
+                    t_ms * 1000, *acc, 0, 0, 0, *mag, 0, 0, 0, 0, 0x1FFF, 0))
+            if i % 25 == 24:
+                await asyncio.sleep(0.05)
+        await wait_until(lambda: len(vehicle.listener.of_type("ATTITUDE_QUATERNION")) >= 900)
+        bridge.publish_status()
+        first = bridge.last_status[1]
+    assert first["primary"][2] == mavlink.MAVLINK_MSG_ID_HIGHRES_IMU
+    assert first["source_switches"] == 1 and first["refused"]["not_primary"] == 300
+    msgs = vehicle.listener.of_type("ATTITUDE_QUATERNION")
+    assert len(msgs) == 900  # 300 SCALED, then every HIGHRES sample
+    assert angle_deg(attitude_of(msgs[5:]), q).max() < 1.0
+
+    async with flying(dict(out_rate=0.0, imu_message="SCALED_IMU"), dict()) as (
+            bridge, vehicle):
+        for i in range(500):  # microseconds in SCALED_IMU.time_boot_ms
+            vehicle.send(mavlink.MAVLink_scaled_imu_message(
+                (1_000_000 + 2000 * i) % 2**32, *acc_mg, 0, 0, 0, *mag_mg, 0))
+            if i % 25 == 24:
+                await asyncio.sleep(0.05)
+        await asyncio.sleep(0.2)
+        bridge.publish_status()
+        status = bridge.last_status[1]
+    assert len(vehicle.listener.of_type("ATTITUDE_QUATERNION")) == 1  # only the first
+    assert status["drops"]["jump"] == 499

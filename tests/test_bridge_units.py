@@ -406,3 +406,24 @@ def test_kernel_filter_keeps_vehicles_and_heartbeats_and_samples_the_rest():
     assert whole == list(sent.values())
     assert all(m == flood[:MARK_LEN] for m in marks)
     assert 0.5 * n / SAMPLE <= len(marks) <= 1.5 * n / SAMPLE
+
+
+@pytest.mark.parametrize("settings, message", [
+    ({"declination_deg": math.inf}, "finite"),
+    ({"declination_deg": math.nan}, "finite"),
+    ({"declination_deg": 200.0}, "declination"),
+    ({"estimators": ["eskf:max_dt=-1"]}, "max_dt"),
+    ({"estimators": ["mahony:declination=inf"]}, "declination"),
+    ({"imu_rate": 0.0}, "imu_rate"),
+    ({"out_rate": math.inf}, "out_rate"),
+    ({"max_peers": 0}, "max_peers"),
+    ({"vehicles": [0]}, "system id"),
+    ({"vehicles": ["1"]}, "vehicles"),
+    ({"clock_resync_s": -1.0}, "clock_resync_s"),
+    ({"gyro_range_dps": math.nan}, "gyro_range_dps"),
+    ({"truth_source": "1-1"}, "SYSID:COMPID"),
+    ({"jump_s": "fast"}, "jump_s"),
+])
+def test_config_rejects_every_unusable_setting(settings, message):
+    with pytest.raises(ValueError, match=message):
+        BridgeConfig(**settings).validate()

@@ -8,16 +8,17 @@ system id and the message id sit at fixed offsets, MAVLink 1 and 2 alike):
 * a system id that is not an admitted vehicle gets only its HEARTBEATs through (a
   ground station or a peer bridge announces itself with them and so earns our output;
   anything else it sends is of no use to us) — refused as ``not_vehicle``;
-* every system id has its own token bucket of ``rate`` messages per second (burst
-  ``burst``): a sender over budget is refused as ``over_budget`` and cannot use up the
-  time of another. Buckets are indexed by the one-byte system id, so their number is
-  bounded whatever the sender claims;
+* every sender — (system id, component id) — has its own token bucket of ``rate``
+  messages per second (burst ``burst``): a sender over budget is refused as
+  ``over_budget`` and cannot use up the time of another, not even of another component
+  of the same vehicle. Buckets are indexed by the two header bytes, so their number is
+  bounded (65,536) whatever the sender claims;
 * bytes that are no MAVLink frame at all share one small bucket (they are parsed only
   to be counted).
 
 The header is not authenticated at this point: a flood that claims the vehicle's own
-system id shares the vehicle's budget (signing is the defence against impersonation);
-everything admitted is still checked in full by the parser.
+system and component id shares the vehicle's budget (signing is the defence against
+impersonation); everything admitted is still checked in full by the parser.
 
 Until a vehicle is admitted (learning the first autopilot heard), every system id may
 send anything within its budget, so that the service can see who is there.
@@ -33,8 +34,9 @@ once the sampled refusals fall below the flood rate.
 from __future__ import annotations
 
 import time
+from array import array
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from .kernelfilter import MARK_LEN, SAMPLE
 
@@ -59,7 +61,6 @@ class AdmissionStats:
     kernel_refused_est: int = 0  # refused by the kernel filter (SAMPLE per sampled one)
     kernel_filter: bool = False  # the kernel filter is on now
     floods: int = 0  # times the kernel filter went on
-    by_sysid: dict[int, int] = field(default_factory=dict)  # refusals per claimed sysid
 
     def to_dict(self) -> dict[str, int | bool]:
         return {"not_vehicle": self.not_vehicle, "over_budget": self.over_budget,
@@ -82,10 +83,10 @@ class Admission:
         self.vehicles: set[int] = set()
         self.stats = AdmissionStats()
         now = time.monotonic()
-        self._tokens = [self.burst] * 256
-        self._other_tokens = [OTHER_BURST] * 256
-        self._stamp = [now] * 256
-        self._other_stamp = [now] * 256
+        self._tokens = array("d", [self.burst]) * 65536  # by sysid << 8 | compid
+        self._stamp = array("d", [now]) * 65536
+        self._other_tokens = array("d", [OTHER_BURST]) * 256  # by sysid
+        self._other_stamp = array("d", [now]) * 256
         self._junk = (JUNK_BURST, now)
         self._window_start = now
         self._window_refused = 0
@@ -142,10 +143,10 @@ class Admission:
             return False
         magic = data[0] if n else 0
         if magic == MAGIC_V2 and n >= 10:
-            sysid = data[5]
+            sysid, compid = data[5], data[6]
             msg_id = data[7] | data[8] << 8 | data[9] << 16
         elif magic == MAGIC_V1 and n >= 6:
-            sysid = data[3]
+            sysid, compid = data[3], data[4]
             msg_id = data[5]
         else:
             return self._junk_ok()
@@ -156,22 +157,21 @@ class Admission:
                 return False
             return self._take(sysid, self._other_tokens, self._other_stamp, OTHER_RATE,
                               OTHER_BURST)
-        return self._take(sysid, self._tokens, self._stamp, self.rate, self.burst)
+        return self._take(sysid << 8 | compid, self._tokens, self._stamp, self.rate,
+                          self.burst)
 
-    def _take(self, sysid: int, tokens: list[float], stamps: list[float], rate: float,
+    def _take(self, key: int, tokens: array, stamps: array, rate: float,
               burst: float) -> bool:
         now = time.monotonic()
-        have = tokens[sysid] + (now - stamps[sysid]) * rate
-        stamps[sysid] = now
+        have = tokens[key] + (now - stamps[key]) * rate
+        stamps[key] = now
         if have > burst:
             have = burst
         if have < 1.0:
-            tokens[sysid] = have
+            tokens[key] = have
             self.stats.over_budget += 1
-            by = self.stats.by_sysid
-            by[sysid] = by.get(sysid, 0) + 1
             return False
-        tokens[sysid] = have - 1.0
+        tokens[key] = have - 1.0
         return True
 
     def _junk_ok(self) -> bool:

@@ -12,6 +12,7 @@ import pytest
 from bridge_support import MAG_NED, G, euler_q, gy86_counts
 
 from bridge import clock as C
+from bridge.admission import Admission
 from bridge.codec import MavCodec, SigningConfig, load_signing_key, signing_key_from_text
 from bridge.compare import compare_series
 from bridge.config import BridgeConfig
@@ -427,3 +428,19 @@ def test_kernel_filter_keeps_vehicles_and_heartbeats_and_samples_the_rest():
 def test_config_rejects_every_unusable_setting(settings, message):
     with pytest.raises(ValueError, match=message):
         BridgeConfig(**settings).validate()
+
+
+def test_admission_budgets_each_sender_and_lets_only_heartbeats_of_strangers_in():
+    gate = Admission(rate=100.0, burst=10.0)
+    vehicle, other_comp = mavlink.MAVLink(None, 1, 1), mavlink.MAVLink(None, 1, 2)
+    stranger = mavlink.MAVLink(None, 9, 1)
+    imu = mavlink.MAVLink_raw_imu_message(1000, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+    assert gate(imu.pack(stranger))  # learning: nobody admitted yet, all within budget
+    gate.admit_vehicle(1)
+    assert not gate(imu.pack(stranger)) and gate.stats.not_vehicle == 1
+    assert gate(_packet(mav=stranger))  # a stranger's HEARTBEAT
+    # Another component of the vehicle floods: it runs out of budget, the vehicle not.
+    flood = [gate(imu.pack(other_comp)) for _ in range(100)]
+    assert sum(flood) <= 12 and gate.stats.over_budget >= 88
+    assert all(gate(imu.pack(vehicle)) for _ in range(10))
+    assert gate(b"\x01") and gate.stats.junk_over_budget == 0  # junk: parsed and counted

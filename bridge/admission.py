@@ -72,9 +72,13 @@ class AdmissionStats:
 class Admission:
     """The gate in front of a UDP link's parser (see module docstring)."""
 
-    def __init__(self, rate: float, burst: float | None = None,
+    def __init__(self, rate: float | None, burst: float | None = None,
                  flood_rate: float = FLOOD_RATE) -> None:
-        self.rate = float(rate)
+        """``rate`` None: no budget (a trusted in-process source running faster than
+        real time, like the built-in emulator's --fast)."""
+        self.budget = rate is not None
+        rate = 1.0 if rate is None else float(rate)
+        self.rate = rate
         self.flood_rate = flood_rate
         #: Called with the admitted system ids when a flood starts / with None when the
         #: filter may come off (the link attaches / detaches the kernel filter).
@@ -157,6 +161,8 @@ class Admission:
                 return False
             return self._take(sysid, self._other_tokens, self._other_stamp, OTHER_RATE,
                               OTHER_BURST)
+        if not self.budget:
+            return True
         return self._take(sysid << 8 | compid, self._tokens, self._stamp, self.rate,
                           self.burst)
 

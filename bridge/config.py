@@ -73,7 +73,7 @@ class BridgeConfig:
     truth_source: str | None = None  # "SYSID:COMPID" of HIL_STATE_QUATERNION; None: autopilot
     max_peers: int = 32  # UDP peers answered at once
     peer_timeout_s: float = 10.0  # a silent peer stops getting output after this
-    max_source_rate: float = 5000.0  # messages/s per sysid admitted to the parser
+    max_source_rate: float = 10000.0  # messages/s per (sysid, compid) admitted to parsing
     source_timeout_s: float = 3.0  # a primary IMU silent this long may be replaced
     evict_after_s: float = 30.0  # a vehicle's estimators/history are dropped after this silence
     clock_resync_s: float = 1.0  # board time of consistent stamps needed for a new timeline

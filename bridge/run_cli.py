@@ -74,7 +74,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     g.add_argument("--peer-timeout", dest="peer_timeout_s", type=float, metavar="S",
                    help="a silent UDP peer stops getting output after S seconds (10)")
     g.add_argument("--max-source-rate", type=float, metavar="MSG/S",
-                   help="messages per second per system id admitted to parsing (5000)")
+                   help="messages per second per sender (sysid, compid) admitted to "
+                        "parsing (10000)")
     g.add_argument("--source-timeout", dest="source_timeout_s", type=float, metavar="S",
                    help="a primary IMU silent this long may be replaced (3)")
     g.add_argument("--evict-after", dest="evict_after_s", type=float, metavar="S",

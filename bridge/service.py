@@ -89,7 +89,8 @@ class BridgeService:
                               idle_timeout_s=cfg.idle_timeout_s)
         self.link: Link = open_link(parse_url(connect), self._on_message, self.signing,
                                     options)
-        self.admission = Admission(cfg.max_source_rate)
+        # The built-in emulator is trusted and may run faster than real time (--fast).
+        self.admission = Admission(None if emulator is not None else cfg.max_source_rate)
         self.link.gate = self.admission
         if isinstance(self.link, UdpLink):
             self.admission.on_flood = self.link.kernel_filter

@@ -89,8 +89,11 @@ def summary(service: BridgeService) -> str:
         drops = {k: v for k, v in st["drops"].items() if v}
         flags = {k: v for k, v in st["flags"].items() if v}
         refused = {k: v for k, v in st["refused"].items() if v}
+        lat = st["latency_ms"]
         lines.append(f" vehicle {sysid}: {st['samples']} samples, {st['sent']} estimates "
-                     f"sent, drops {drops or 'none'}, flags {flags or 'none'}, "
+                     f"sent (latency p50 {_fmt(lat.get('p50'), '.2f')} ms, p99 "
+                     f"{_fmt(lat.get('p99'), '.2f')} ms), "
+                     f"drops {drops or 'none'}, flags {flags or 'none'}, "
                      f"link lost {st['link']['lost']}, refused {refused or 'none'}, "
                      f"restarts {st['restarts']} ({st['held_initialising']} estimates "
                      f"held while initialising)")

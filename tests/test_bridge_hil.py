@@ -36,7 +36,9 @@ async def run_emulator_through_bridge(cfg: EmulatorConfig, **bridge_settings):
     """Stream ``cfg`` into a bridge; returns (listener, emulator stats, bridge status)."""
     listener = UdpListener()
     out_port = await listener.start()
+    # --fast runs faster than real time: lift the per-sender budget meant for live links.
     settings = {"estimators": [PRIMARY], "out_rate": 50.0, "imu_rate": cfg.imu_rate_hz,
+                "max_source_rate": 1e7,
                 "declination_deg": emulator_declination_deg(),
                 "outs": [f"udpout:127.0.0.1:{out_port}"]}
     settings.update(bridge_settings)

@@ -395,14 +395,18 @@ async def test_spoofed_sources_and_peers_cost_bounded_state_and_get_no_output():
 
         spoofed = [0]
 
+        upside_down = raw_imu(0, euler_q(180, 0, 0))
+        hb = autopilot_heartbeat()
+
         def attack(i: int, t_us: int) -> None:
             if i % 25 == 0:
                 spoofed[0] += len(spoofs)
                 for k, s in enumerate(spoofs):
-                    s.send(raw_imu(t_us + k, euler_q(180, 0, 0), imu_id=k % 4))
+                    upside_down.time_usec, upside_down.id = t_us + k, k % 4
+                    s.send(upside_down)
             if i % 100 == 0:
                 for t in talkers:
-                    t.send(autopilot_heartbeat())
+                    t.send(hb)
                 for b in bytes_only:
                     b.sendto(b"\x01", ("127.0.0.1", bridge.port))
 

@@ -5,7 +5,8 @@ one sender would take the whole CPU and starve the vehicle the bridge is there f
 So before a UDP datagram is parsed, its first frame's header is peeked (the sender's
 system id and the message id sit at fixed offsets, MAVLink 1 and 2 alike):
 
-* a system id that is not an admitted vehicle gets only its HEARTBEATs through (a
+* a sender that is not admitted — another system id, or another component of a served
+  vehicle once its autopilot's component is known — gets only its HEARTBEATs through (a
   ground station or a peer bridge announces itself with them and so earns our output;
   anything else it sends is of no use to us) — refused as ``not_vehicle``;
 * every sender — (system id, component id) — has its own token bucket of ``rate``
@@ -38,7 +39,7 @@ from array import array
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from .kernelfilter import MARK_LEN, SAMPLE
+from .kernelfilter import MARK_LEN, SAMPLE, Senders
 
 MAGIC_V1, MAGIC_V2 = 0xFE, 0xFD
 HEARTBEAT_ID = 0
@@ -80,11 +81,12 @@ class Admission:
         rate = 1.0 if rate is None else float(rate)
         self.rate = rate
         self.flood_rate = flood_rate
-        #: Called with the admitted system ids when a flood starts / with None when the
+        #: Called with the admitted senders when a flood starts / with None when the
         #: filter may come off (the link attaches / detaches the kernel filter).
-        self.on_flood: Callable[[set[int] | None], bool] | None = None
+        self.on_flood: Callable[[Senders | None], bool] | None = None
         self.burst = float(burst if burst is not None else max(rate * 0.25, 64.0))
-        self.vehicles: set[int] = set()
+        #: Admitted system ids -> the component ids that may send everything (None: any).
+        self.vehicles: dict[int, frozenset[int] | None] = {}
         self.stats = AdmissionStats()
         now = time.monotonic()
         self._tokens = array("d", [self.burst]) * 65536  # by sysid << 8 | compid
@@ -97,18 +99,19 @@ class Admission:
         self._filter_since = 0.0
         self._sampled_since_tick = 0
 
-    def admit_vehicle(self, sysid: int) -> None:
-        """From now on only these system ids send more than heartbeats."""
-        self.vehicles.add(sysid)
+    def admit_vehicle(self, sysid: int, compids: frozenset[int] | None = None) -> None:
+        """From now on only admitted senders send more than heartbeats (``compids``: the
+        vehicle's components that may, None: any of them)."""
+        self.vehicles[sysid] = compids
         self._refilter()
 
     def forget_vehicle(self, sysid: int) -> None:
-        self.vehicles.discard(sysid)
+        self.vehicles.pop(sysid, None)
         self._refilter()
 
     def _refilter(self) -> None:
         if self.stats.kernel_filter and self.on_flood is not None:
-            self.stats.kernel_filter = self.on_flood(set(self.vehicles) or None)
+            self.stats.kernel_filter = self.on_flood(dict(self.vehicles) or None)
 
     def _refused(self) -> None:
         """Count one refusal of a non-vehicle; start the kernel filter under a flood."""
@@ -120,7 +123,7 @@ class Admission:
         if now - self._window_start > FLOOD_WINDOW_S:
             self._window_start, self._window_refused = now, 0
             return
-        if self.on_flood is not None and self.vehicles and self.on_flood(set(self.vehicles)):
+        if self.on_flood is not None and self.vehicles and self.on_flood(dict(self.vehicles)):
             self.stats.kernel_filter = True
             self.stats.floods += 1
             self._filter_since = now
@@ -155,7 +158,8 @@ class Admission:
         else:
             return self._junk_ok()
         vehicles = self.vehicles
-        if vehicles and sysid not in vehicles:
+        if vehicles and (sysid not in vehicles or (
+                (comps := vehicles[sysid]) is not None and compid not in comps)):
             if msg_id != HEARTBEAT_ID:
                 self._refused()
                 return False

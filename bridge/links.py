@@ -32,7 +32,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from .codec import MavCodec, SigningConfig
-from .kernelfilter import KernelFilter
+from .kernelfilter import KernelFilter, Senders
 from .mav import MAVLinkMessage
 
 log = logging.getLogger(__name__)
@@ -216,8 +216,8 @@ class UdpLink(Link):
         self._peers_valid_until = 0.0
         self._filter = KernelFilter()
 
-    def kernel_filter(self, vehicles: set[int] | None) -> bool:
-        """Refuse, in the kernel, what only these vehicles may send (None: detach)."""
+    def kernel_filter(self, vehicles: Senders | None) -> bool:
+        """Refuse, in the kernel, what only these senders may send (None: detach)."""
         if self._sock is None:
             return False
         if vehicles is None:

@@ -292,6 +292,12 @@ class BridgeService:
             vehicle.autopilot_compid = compid
             if vehicle.admitted_by == PROVISIONAL:
                 vehicle.admitted_by = HEARTBEAT
+            # From now on the gate lets only the autopilot (and the truth source) of this
+            # system id send more than heartbeats.
+            comps = {compid}
+            if self.truth is not None and self.truth[0] == vehicle.sysid:
+                comps.add(self.truth[1])
+            self.admission.admit_vehicle(vehicle.sysid, frozenset(comps))
         if compid != vehicle.autopilot_compid:
             vehicle.refused["other_component"] += 1
             return

@@ -369,7 +369,9 @@ async def test_spoofed_references_do_not_poison_the_live_comparison():
         status = bridge.last_status[1]
     assert "truth" not in status["compare"]  # the only truth came from a stranger
     assert status["compare"]["vehicle"]["mahony"]["total_deg"] < 2.0
-    assert status["refused"]["refs_refused"] >= 2 * 250
+    # Refused before parsing: once the autopilot's component is known, the gate lets no
+    # other component of the vehicle send more than heartbeats.
+    assert status["connection"]["gate"]["not_vehicle"] == 2 * 250
 
 
 # --- spoofed sources, peers, stream requests ----------------------------------------------

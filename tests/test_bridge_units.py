@@ -381,17 +381,19 @@ def test_kernel_filter_keeps_vehicles_and_heartbeats_and_samples_the_rest():
     rx.bind(("127.0.0.1", 0))
     rx.setblocking(False)
     kf = KernelFilter()
-    assert kf.attach(rx, {1})
+    assert kf.attach(rx, {1: frozenset({1}), 5: None})
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     vehicle, other = mavlink.MAVLink(None, 1, 1), mavlink.MAVLink(None, 9, 1)
+    gimbal, any_comp = mavlink.MAVLink(None, 1, 154), mavlink.MAVLink(None, 5, 77)
     imu = mavlink.MAVLink_raw_imu_message(1000, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
-    sent = {"vehicle": imu.pack(vehicle), "heartbeat": _packet(mav=other)}
+    sent = {"vehicle": imu.pack(vehicle), "heartbeat": _packet(mav=other),
+            "any_component": imu.pack(any_comp), "gimbal_heartbeat": _packet(mav=gimbal)}
     for data in sent.values():
         tx.sendto(data, rx.getsockname())
     flood = imu.pack(other)
     n = 6400
-    for _ in range(n):
-        tx.sendto(flood, rx.getsockname())
+    for i in range(n):  # half from another system, half from another component
+        tx.sendto(flood if i % 2 else imu.pack(gimbal), rx.getsockname())
     time.sleep(0.1)
     got = []
     while True:
@@ -405,7 +407,7 @@ def test_kernel_filter_keeps_vehicles_and_heartbeats_and_samples_the_rest():
     whole = [g for g in got if len(g) > MARK_LEN]
     marks = [g for g in got if len(g) == MARK_LEN]
     assert whole == list(sent.values())
-    assert all(m == flood[:MARK_LEN] for m in marks)
+    assert all(m == flood[:MARK_LEN] for m in marks)  # (the first 3 bytes are alike)
     assert 0.5 * n / SAMPLE <= len(marks) <= 1.5 * n / SAMPLE
 
 
@@ -443,4 +445,11 @@ def test_admission_budgets_each_sender_and_lets_only_heartbeats_of_strangers_in(
     flood = [gate(imu.pack(other_comp)) for _ in range(100)]
     assert sum(flood) <= 12 and gate.stats.over_budget >= 88
     assert all(gate(imu.pack(vehicle)) for _ in range(10))
+    # Once the vehicle's autopilot component is known, other components get heartbeats
+    # through only.
+    gate.admit_vehicle(1, frozenset({1}))
+    refused = gate.stats.not_vehicle
+    assert not gate(imu.pack(other_comp)) and gate.stats.not_vehicle == refused + 1
+    time.sleep(0.05)  # the vehicle's bucket refills (100/s)
+    assert gate(_packet(mav=other_comp)) and gate(imu.pack(vehicle))
     assert gate(b"\x01") and gate.stats.junk_over_budget == 0  # junk: parsed and counted

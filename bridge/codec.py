@@ -3,6 +3,14 @@
 Transports (``links``) only move bytes; this class owns the pymavlink state. It keeps
 one packer per source system id so that sequence numbers run per sender, as MAVLink
 requires when the bridge speaks for several vehicles on one link.
+
+Signatures are checked here, not by pymavlink: pymavlink stores a frame's signing
+timestamp *before* it verifies the signature (one forged frame with timestamp 2^48-1
+locks the sender out for good) and keeps that state per parser, i.e. per UDP peer (a
+replay from a new port passes). :class:`SigningState` keeps the last timestamp per
+(link id, sysid, compid) for the whole connection and stores it only after the
+signature is verified; ``allow_unsigned`` lets *unsigned* frames through (counted) but
+never wrongly signed or replayed ones.
 """
 
 from __future__ import annotations
@@ -66,12 +74,50 @@ def _signing_now() -> int:
 
 
 def _apply_signing(mav: MAVLink, signing: SigningConfig) -> None:
+    """Sign what ``mav`` packs (it never verifies: parsers get no key, see SigningState)."""
     mav.signing.secret_key = signing.key
     mav.signing.link_id = signing.link_id
     mav.signing.timestamp = _signing_now()
     mav.signing.sign_outgoing = True
-    allow = signing.allow_unsigned
-    mav.signing.allow_unsigned_callback = lambda _mav, _msg_id: allow
+
+
+#: A new signed stream is accepted if its timestamp is at most this far behind our clock
+#: (10 µs units: one minute, as the MAVLink signing specification suggests).
+NEW_STREAM_WINDOW = 60 * 100_000
+#: Signed streams remembered per connection; beyond it the stalest is forgotten.
+MAX_SIGNED_STREAMS = 1024
+SIGNED, UNSIGNED_OK, UNSIGNED, BAD_SIGNATURE, REPLAYED = (
+    "signed", "unsigned_ok", "unsigned", "bad_signature", "replayed")
+
+
+class SigningState:
+    """Verification of incoming signed frames for one connection (all its peers)."""
+
+    def __init__(self, config: SigningConfig) -> None:
+        self.config = config
+        self.streams: dict[tuple[int, int, int], int] = {}  # -> last verified timestamp
+
+    def check(self, frame: bytes | bytearray, sysid: int, compid: int) -> str:
+        """The verdict on one whole MAVLink frame (header to signature)."""
+        if len(frame) < 13 or frame[0] != mavlink.PROTOCOL_MARKER_V2 or \
+                not frame[2] & mavlink.MAVLINK_IFLAG_SIGNED:
+            return UNSIGNED_OK if self.config.allow_unsigned else UNSIGNED
+        link_id = frame[-13]
+        timestamp = int.from_bytes(frame[-12:-6], "little")
+        digest = hashlib.sha256(self.config.key + bytes(frame[:-6])).digest()[:6]
+        if digest != bytes(frame[-6:]):
+            return BAD_SIGNATURE  # nothing is stored for a frame we cannot trust
+        key = (link_id, sysid, compid)
+        last = self.streams.get(key)
+        if last is None:
+            if timestamp + NEW_STREAM_WINDOW < _signing_now():
+                return REPLAYED
+        elif timestamp <= last:
+            return REPLAYED
+        if last is None and len(self.streams) >= MAX_SIGNED_STREAMS:
+            del self.streams[min(self.streams, key=self.streams.__getitem__)]
+        self.streams[key] = timestamp
+        return SIGNED
 
 
 @dataclass
@@ -83,7 +129,10 @@ class CodecStats:
     messages_out: int = 0
     bad_crc: int = 0  # checksum mismatch: corrupted on the wire
     bad_frame: int = 0  # junk between frames, truncated or malformed frames
-    unsigned_rejected: int = 0  # unsigned or wrongly signed input while signing is on
+    unsigned_rejected: int = 0  # unsigned input while signing is required
+    unsigned_accepted: int = 0  # unsigned input let through by allow_unsigned
+    bad_signature: int = 0  # signed with another key, or forged
+    replayed: int = 0  # a signing timestamp not newer than the stream's last one
     unknown_message: int = 0  # valid frame of a message id outside the dialect
     truncated: int = 0  # datagrams ending in an incomplete packet
     reasons: dict[str, int] = field(default_factory=dict)
@@ -102,15 +151,22 @@ class CodecStats:
 class MavCodec:
     """Parser for one byte stream plus per-sender packers sharing one signing setup."""
 
-    def __init__(self, signing: SigningConfig | None = None) -> None:
+    def __init__(self, signing: SigningConfig | None = None,
+                 verifier: SigningState | None = None) -> None:
         self.signing = signing
+        self.verifier = verifier or (SigningState(signing) if signing is not None else None)
         self.stats = CodecStats()
-        self._parser = self._new_mav(0, 0)
+        self._parser = self._new_parser()
         self._packers: dict[tuple[int, int], MAVLink] = {}
 
-    def _new_mav(self, sysid: int, compid: int) -> MAVLink:
-        mav = MAVLink(None, sysid, compid)
+    @staticmethod
+    def _new_parser() -> MAVLink:
+        mav = MAVLink(None, 0, 0)
         mav.robust_parsing = True  # bad input becomes MAVLink_bad_data, not an exception
+        return mav
+
+    def _new_packer(self, sysid: int, compid: int) -> MAVLink:
+        mav = MAVLink(None, sysid, compid)
         if self.signing is not None:
             _apply_signing(mav, self.signing)
         return mav
@@ -149,7 +205,7 @@ class MavCodec:
             msgs = self._parser.parse_buffer(data)
         except Exception as exc:  # pymavlink raising on input is a bug we must survive
             self.stats.count_bad(f"parser error {type(exc).__name__}")
-            self._parser = self._new_mav(0, 0)
+            self._parser = self._new_parser()
             return []
         if not msgs:
             return []
@@ -159,16 +215,36 @@ class MavCodec:
                 self.stats.count_bad(str(msg.reason))
             elif isinstance(msg, mavlink.MAVLink_unknown):
                 self.stats.unknown_message += 1
-            else:
+            elif self.verifier is None or self._verified(msg):
                 good.append(msg)
         self.stats.messages_in += len(good)
         return good
+
+    def _verified(self, msg: MAVLinkMessage) -> bool:
+        assert self.verifier is not None
+        verdict = self.verifier.check(msg.get_msgbuf(), msg.get_srcSystem(),
+                                      msg.get_srcComponent())
+        if verdict == SIGNED:
+            msg._signed = True
+            return True
+        if verdict == UNSIGNED_OK:
+            self.stats.unsigned_accepted += 1
+            return True
+        if verdict == UNSIGNED:
+            self.stats.unsigned_rejected += 1
+        elif verdict == BAD_SIGNATURE:
+            self.stats.bad_signature += 1
+        else:
+            self.stats.replayed += 1
+        return False
 
     def pack(self, msg: MAVLinkMessage, sysid: int, compid: int) -> bytes:
         """Encode ``msg`` as sent by (sysid, compid), advancing that sender's sequence."""
         mav = self._packers.get((sysid, compid))
         if mav is None:
-            mav = self._packers[(sysid, compid)] = self._new_mav(sysid, compid)
+            mav = self._packers[(sysid, compid)] = self._new_packer(sysid, compid)
+        if self.signing is not None:  # our timestamps follow real time (peers check them)
+            mav.signing.timestamp = max(mav.signing.timestamp, _signing_now())
         buf = msg.pack(mav)
         mav.seq = (mav.seq + 1) % 256
         self.stats.messages_out += 1

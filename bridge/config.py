@@ -7,6 +7,7 @@ strings, ``outs`` a list of URLs); command-line options override the file.
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -66,6 +67,22 @@ class BridgeConfig:
     allow_unsigned: bool = False
     jump_s: float = 0.1  # shortest timestamp step treated as a clock jump / outage
     reorder_s: float = 0.5  # how far back a late sample is considered reordered
+    # --- who is served, and bounds under attack (see bridge.vehicle, bridge.admission)
+    vehicles: list[int] = field(default_factory=list)  # sysids served; []: first autopilot
+    imu_id: int | None = None  # the primary IMU's index (RAW_IMU/HIGHRES_IMU id); None: first
+    truth_source: str | None = None  # "SYSID:COMPID" of HIL_STATE_QUATERNION; None: autopilot
+    max_peers: int = 32  # UDP peers answered at once
+    peer_timeout_s: float = 10.0  # a silent peer stops getting output after this
+    max_source_rate: float = 10000.0  # messages/s per (sysid, compid) admitted to parsing
+    source_timeout_s: float = 3.0  # a primary IMU silent this long may be replaced
+    evict_after_s: float = 30.0  # a vehicle's estimators/history are dropped after this silence
+    clock_resync_s: float = 1.0  # board time of consistent stamps needed for a new timeline
+    reinit_gap_s: float = 1.0  # an outage this long restarts the estimate
+    reinit_settle_s: float = 1.0  # after a restart, MAVLink output waits this long
+    idle_timeout_s: float = 5.0  # TCP/serial: reconnect after this long without a message
+    gyro_range_dps: float = 2000.0  # sensor full scale: readings beyond it are rejected
+    accel_range_g: float = 16.0
+    mag_range_gauss: float = 8.0
     window_s: float = 10.0  # live comparison window
     status_period_s: float = 1.0
     duration: float | None = None  # stop after this many seconds
@@ -87,6 +104,8 @@ class BridgeConfig:
         """Raise ValueError naming the bad setting, before anything is started."""
         from .links import parse_url
 
+        self._check_types()
+        self._check_ranges()
         if self.connect:
             parse_url(self.connect)
         for url in self.outs:
@@ -106,8 +125,64 @@ class BridgeConfig:
             from .mqtt import MqttSettings
 
             MqttSettings.from_url(self.mqtt)
-        if self.imu_rate <= 0:
-            raise ValueError("imu_rate must be positive")
+
+    def _check_types(self) -> None:
+        """Every setting of the type it is declared with (a TOML file can say anything)."""
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            kind = str(f.type)
+            if value is None and "None" in kind:
+                continue
+            if kind.startswith("float"):
+                ok = isinstance(value, int | float) and not isinstance(value, bool)
+            elif kind.startswith("int"):
+                ok = isinstance(value, int) and not isinstance(value, bool)
+            elif kind.startswith("bool"):
+                ok = isinstance(value, bool)
+            elif kind.startswith("str"):
+                ok = isinstance(value, str)
+            elif kind == "list[int]":
+                ok = isinstance(value, list) and all(
+                    isinstance(v, int) and not isinstance(v, bool) for v in value)
+            elif kind == "list[str]":
+                ok = isinstance(value, list) and all(isinstance(v, str) for v in value)
+            else:
+                continue
+            if not ok:
+                raise ValueError(f"setting {f.name!r} must be {kind}, got {value!r}")
+
+    def _check_ranges(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ValueError(f"setting {f.name!r} must be a finite number, got {value!r}")
+        positive = ("imu_rate", "window_s", "status_period_s", "jump_s", "peer_timeout_s",
+                    "max_source_rate", "source_timeout_s", "evict_after_s", "clock_resync_s",
+                    "reinit_gap_s", "idle_timeout_s", "gyro_range_dps", "accel_range_g",
+                    "mag_range_gauss")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"setting {name!r} must be positive, got {getattr(self, name)!r}")
+        for name in ("reorder_s", "reinit_settle_s", "mqtt_rate"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"setting {name!r} must not be negative")
+        if self.duration is not None and not self.duration > 0:
+            raise ValueError(f"duration must be positive, got {self.duration!r}")
+        if self.declination_deg is not None and abs(self.declination_deg) > 180.0:
+            raise ValueError(f"declination must be within ±180°, got {self.declination_deg!r}")
+        if not 1 <= self.max_peers <= 100_000:
+            raise ValueError(f"max_peers must be in 1..100000, got {self.max_peers}")
+        for sysid in self.vehicles:
+            if not 1 <= sysid <= 255:
+                raise ValueError(f"vehicle system id must be in 1..255, got {sysid}")
+        if self.imu_id is not None and not 0 <= self.imu_id <= 255:
+            raise ValueError(f"imu_id must be in 0..255, got {self.imu_id}")
+        if self.truth_source is not None:
+            parse_source(self.truth_source)
+
+    @property
+    def truth(self) -> tuple[int, int] | None:
+        return parse_source(self.truth_source) if self.truth_source else None
 
     def sensor_calibration(self) -> SensorCalibration | None:
         """The calibration file's contents (ValueError naming the file if it is bad)."""
@@ -135,3 +210,12 @@ class BridgeConfig:
         """A copy with every override that is not None (or an empty list) applied."""
         changes = {k: v for k, v in overrides.items() if v is not None and v != []}
         return dataclasses.replace(self, **changes)
+
+
+def parse_source(text: str) -> tuple[int, int]:
+    """``"SYSID:COMPID"`` -> (sysid, compid); ValueError saying the form otherwise."""
+    sysid, sep, compid = str(text).partition(":")
+    if not (sep and sysid.strip().isdigit() and compid.strip().isdigit()
+            and 1 <= int(sysid) <= 255 and 0 <= int(compid) <= 255):
+        raise ValueError(f"bad source {text!r}; use SYSID:COMPID, e.g. 1:1")
+    return int(sysid), int(compid)

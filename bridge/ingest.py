@@ -4,15 +4,22 @@ Reads RAW_IMU (through a board profile that states what its integers mean),
 SCALED_IMU / SCALED_IMU2 / SCALED_IMU3 (mG, mrad/s, mgauss, FRD) and HIGHRES_IMU
 (m/s^2, rad/s, gauss, FRD), applies the board mounting rotation and the sensor
 calibration (:mod:`imu.calibration`, folded into one matrix), and stamps each
-sample with the message's own time. Every source — (sysid, compid, IMU id) — has its
-own clock and counters, so several vehicles or IMUs can share one link.
+sample with the message's own time. Every source — (sysid, compid, message, IMU id) —
+has its own clock (in its message's own units) and counters; which sources are worth
+ingesting at all is the caller's choice (one primary IMU per vehicle).
 
 What happens to bad input, and why:
 
 * timestamp problems (duplicate, late, jump, backwards): the sample is dropped and
-  counted (see :mod:`bridge.clock`); the estimator never sees a wrong ``dt``;
+  counted (see :mod:`bridge.clock`); the estimator never sees a wrong ``dt``. A new
+  timeline is adopted only on sustained evidence; a reboot, or an outage longer than
+  ``reinit_gap_s``, marks the next sample ``restart`` so that the estimate starts over
+  instead of continuing from a stale attitude;
 * non-finite gyro (HIGHRES_IMU floats): dropped and counted — there is no rate to
   integrate;
+* a gyro or accelerometer reading beyond what the sensor can measure (``Limits``; a
+  float field can carry anything): dropped and counted as ``implausible`` — it is a
+  forged or corrupted value, and integrating it would turn the attitude silently;
 * non-finite or clipped accelerometer: passed as NaN so the estimator runs gyro-only
   for that sample (it counts it), and counted here;
 * clipped gyro: replaced by the last unclipped reading (a short knock or an
@@ -41,6 +48,8 @@ MG = 9.80665e-3  # m/s^2 per milli-g
 MAG_NORM_TOLERANCE = 0.15  # relative deviation of |mag| that marks a disturbed reading
 MAG_NORM_GAIN = 0.001  # per-sample weight of the running |mag| average
 MAG_REANCHOR_S = 3.0
+#: Readings are implausible this far beyond the sensor's full scale (scaling, calibration).
+RANGE_MARGIN = 1.05
 
 ID_RAW_IMU = mavlink.MAVLINK_MSG_ID_RAW_IMU
 ID_SCALED_IMU = mavlink.MAVLINK_MSG_ID_SCALED_IMU
@@ -62,11 +71,43 @@ def _affine(matrix: np.ndarray, offset: np.ndarray) -> np.ndarray:
 
 
 class SourceKey(NamedTuple):
-    """One IMU stream: the sending system and component, and its IMU index."""
+    """One IMU stream: the sending system and component, the message, and its IMU index.
+
+    The message id is part of the key: RAW_IMU (µs), SCALED_IMU (ms) and HIGHRES_IMU
+    (µs) of one vehicle are different streams with different clocks.
+    """
 
     sysid: int
     compid: int
+    msg: int
     imu: int
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Full scale of the sensors: a reading beyond it is not a measurement."""
+
+    gyro_dps: float = 2000.0
+    accel_g: float = 16.0
+    mag_gauss: float = 8.0
+
+    def validate(self) -> None:
+        for name, v in (("gyro_range_dps", self.gyro_dps), ("accel_range_g", self.accel_g),
+                        ("mag_range_gauss", self.mag_gauss)):
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number, got {v!r}")
+
+    @property
+    def gyro_rad_s(self) -> float:
+        return math.radians(self.gyro_dps) * RANGE_MARGIN
+
+    @property
+    def accel_m_s2(self) -> float:
+        return self.accel_g * 9.80665 * RANGE_MARGIN
+
+    @property
+    def mag(self) -> float:
+        return self.mag_gauss * RANGE_MARGIN
 
 
 @dataclass(slots=True)
@@ -81,12 +122,13 @@ class ImuSample:
     acc: np.ndarray  # m/s^2 specific force (NaN when unusable)
     mag: np.ndarray | None  # any unit (direction only); None when absent or unusable
     arrival: float  # time.perf_counter() when the packet was read (for latency)
+    restart: str | None = None  # "reboot" / "gap": start the estimate over at this sample
 
 
 #: Per-source counters, by cause. Drops remove the sample; the others only flag it.
-DROP_CAUSES = (C.DUPLICATE, C.REORDERED, C.JUMP, C.BACKWARDS, "clock_step", "nonfinite")
-FLAG_CAUSES = ("resync", "wrap", "gyro_saturated", "acc_saturated", "acc_invalid",
-               "mag_invalid", "mag_disturbed", "stuck")
+DROP_CAUSES = (C.DUPLICATE, C.REORDERED, C.JUMP, C.BACKWARDS, "nonfinite", "implausible")
+FLAG_CAUSES = ("resync", "reboot", "gap", "reinit", "wrap", "gyro_saturated",
+               "acc_saturated", "acc_invalid", "mag_invalid", "mag_disturbed", "stuck")
 
 
 @dataclass
@@ -109,12 +151,24 @@ class SourceState:
         return sum(self.counts[c] for c in DROP_CAUSES)
 
 
+class _Pending(NamedTuple):
+    """A converted reading waiting for the clock's verdict (``flags``: counted when used)."""
+
+    gyr: np.ndarray
+    acc: np.ndarray
+    mag: np.ndarray | None
+    arrival: float
+    flags: tuple[str, ...]
+
+
 class Ingest:
     """Turns IMU messages into :class:`ImuSample`; keeps per-source state."""
 
     def __init__(self, profile: BoardProfile, rotation: np.ndarray | None = None,
                  jump_s: float = 0.1, reorder_s: float = 0.5,
-                 calibration: SensorCalibration | None = None) -> None:
+                 calibration: SensorCalibration | None = None,
+                 limits: Limits | None = None, resync_s: float = 1.0,
+                 reinit_gap_s: float = 1.0) -> None:
         rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
         cal = SensorCalibration() if calibration is None else calibration
         self.profile = profile
@@ -122,6 +176,10 @@ class Ingest:
         self.calibration = cal
         self.jump_s = jump_s
         self.reorder_s = reorder_s
+        self.resync_s = resync_s
+        self.reinit_gap_s = reinit_gap_s
+        lim = Limits() if limits is None else limits
+        self.limits = lim
         # Every "message numbers -> calibrated FRD SI" map is affine: one matrix per
         # message type acting on the numbers with a 1 appended, which folds scale,
         # axes, mounting rotation, calibration matrix and offset into a single multiply
@@ -143,124 +201,187 @@ class Ingest:
         self._highres_gyr = _affine(gyr_m @ rot, gyr_c)
         self._highres_acc = _affine(acc_m @ rot, acc_c)
         self._highres_mag = _affine(mag_m @ rot, mag_c)
+        # Range checks on the message's own numbers (cheap, before any conversion).
+        self._raw_gyr_max = lim.gyro_rad_s / profile.gyro_scale
+        self._raw_acc_max = lim.accel_m_s2 / profile.accel_scale
+        self._scaled_gyr_max = lim.gyro_rad_s * 1e3  # mrad/s
+        self._scaled_acc_max = lim.accel_m_s2 / MG  # mG
         self.sources: dict[SourceKey, SourceState] = {}
 
     def _source(self, key: SourceKey, tick_s: float, wrap: int) -> SourceState:
         state = self.sources.get(key)
         if state is None:
-            state = SourceState(C.SampleClock(tick_s, wrap, self.jump_s, self.reorder_s))
+            state = SourceState(C.SampleClock(tick_s, wrap, self.jump_s, self.reorder_s,
+                                              self.resync_s))
             self.sources[key] = state
         return state
 
-    def handle(self, msg: MAVLinkMessage, arrival: float | None = None) -> ImuSample | None:
-        """An accepted sample for an IMU message, else None (dropped or not an IMU)."""
-        msg_id = msg.get_msgId()  # not msg.id: RAW_IMU's own `id` field (IMU index) shadows it
-        if msg_id == ID_RAW_IMU:
-            return self._raw_imu(msg, arrival)
+    def forget(self, key: SourceKey) -> None:
+        """Drop a source's state (it went silent, or it is no longer wanted)."""
+        self.sources.pop(key, None)
+
+    @staticmethod
+    def key_of(msg: MAVLinkMessage) -> SourceKey | None:
+        """The source an IMU message belongs to, None for other messages."""
+        msg_id = msg.get_msgId()  # not msg.id: RAW_IMU's `id` field (IMU index) shadows it
+        if msg_id in (ID_RAW_IMU, ID_HIGHRES_IMU):
+            return SourceKey(msg.get_srcSystem(), msg.get_srcComponent(), msg_id, int(msg.id))
         if msg_id in _SCALED_IMU_INDEX:
-            return self._scaled_imu(msg, _SCALED_IMU_INDEX[msg_id], arrival)
-        if msg_id == ID_HIGHRES_IMU:
-            return self._highres_imu(msg, arrival)
+            return SourceKey(msg.get_srcSystem(), msg.get_srcComponent(), msg_id,
+                             _SCALED_IMU_INDEX[msg_id])
         return None
 
+    def handle(self, msg: MAVLinkMessage, arrival: float | None = None) -> ImuSample | None:
+        """The newest accepted sample for an IMU message, else None (dropped, held as
+        evidence for a new timeline, or not an IMU)."""
+        samples = self.handle_all(msg, arrival)
+        return samples[-1] if samples else None
+
+    def handle_all(self, msg: MAVLinkMessage, arrival: float | None = None,
+                   key: SourceKey | None = None) -> list[ImuSample]:
+        """Every sample this message makes usable, in order: usually one; none when it is
+        dropped; several when it completes the evidence for a new timeline (the held
+        samples come out with it)."""
+        key = key or self.key_of(msg)
+        if key is None:
+            return []
+        now = time.perf_counter() if arrival is None else arrival
+        if key.msg == ID_RAW_IMU:
+            return self._raw_imu(msg, key, now)
+        if key.msg == ID_HIGHRES_IMU:
+            return self._highres_imu(msg, key, now)
+        return self._scaled_imu(msg, key, now)
+
     # --- per message type ------------------------------------------------------------
-    def _raw_imu(self, m: MAVLinkMessage, arrival: float | None) -> ImuSample | None:
-        key = SourceKey(m.get_srcSystem(), m.get_srcComponent(), int(m.id))
+    def _raw_imu(self, m: MAVLinkMessage, key: SourceKey, arrival: float) -> list[ImuSample]:
         src = self._source(key, 1e-6, C.WRAP_32)
         g = (m.xgyro, m.ygyro, m.zgyro)
         a = (m.xacc, m.yacc, m.zacc)
         mg = (m.xmag, m.ymag, m.zmag)
+        if max(map(abs, g)) > self._raw_gyr_max or max(map(abs, a)) > self._raw_acc_max:
+            src.counts["implausible"] += 1
+            return []
         p = self.profile
         gyro_clipped = p.gyro_saturation is not None and max(map(abs, g)) >= p.gyro_saturation
         acc_clipped = p.accel_saturation is not None and max(map(abs, a)) >= p.accel_saturation
         mag_overflow = p.mag_overflow is not None and p.mag_overflow in mg
-        # A clipped gyro axis is known to be wrong (rate beyond range, or a knock); for
-        # a short event the last unclipped rate is the better guess.
         raw = g + a
         si = self._raw_all @ np.array(raw + mg + _ONE, dtype=float)
-        gyr = src.last_good_gyr if gyro_clipped and src.last_good_gyr is not None else si[0:3]
         acc = np.full(3, np.nan) if acc_clipped else si[3:6]
         mag = None if mg == (0, 0, 0) or mag_overflow else si[6:9]
-        sample = self._stamp(src, key, m.time_usec, 1e-6, gyr, acc, mag, arrival, raw)
-        if sample is None:
-            return None
+        flags: tuple[str, ...] = ()
         if gyro_clipped:
-            src.counts["gyro_saturated"] += 1
-        else:
-            src.last_good_gyr = gyr
+            flags += ("gyro_saturated",)
         if acc_clipped:
-            src.counts["acc_saturated"] += 1
+            flags += ("acc_saturated",)
         if mag_overflow:
-            src.counts["mag_invalid"] += 1
+            flags += ("mag_invalid",)
         # Noise makes two identical 6-axis raw readings in a row practically impossible:
         # a repeat means the sensor (or its driver) re-sends old data.
         if raw == src.last_raw:
-            src.counts["stuck"] += 1
+            flags += ("stuck",)
         src.last_raw = raw
-        return sample
+        return self._stamp(src, key, m.time_usec, 1e-6,
+                           _Pending(si[0:3], acc, mag, arrival, flags), raw)
 
-    def _scaled_imu(self, m: MAVLinkMessage, index: int,
-                    arrival: float | None) -> ImuSample | None:
-        key = SourceKey(m.get_srcSystem(), m.get_srcComponent(), index)
+    def _scaled_imu(self, m: MAVLinkMessage, key: SourceKey,
+                    arrival: float) -> list[ImuSample]:
         src = self._source(key, 1e-3, C.WRAP_32)
-        gyr = self._scaled_gyr @ (m.xgyro, m.ygyro, m.zgyro, 1.0)
-        acc = self._scaled_acc @ (m.xacc, m.yacc, m.zacc, 1.0)
+        g = (m.xgyro, m.ygyro, m.zgyro)
+        a = (m.xacc, m.yacc, m.zacc)
+        if max(map(abs, g)) > self._scaled_gyr_max or max(map(abs, a)) > self._scaled_acc_max:
+            src.counts["implausible"] += 1
+            return []
+        gyr = self._scaled_gyr @ (g + _ONE)
+        acc = self._scaled_acc @ (a + _ONE)
         mg = (m.xmag, m.ymag, m.zmag)
         mag = None if mg == (0, 0, 0) else self._scaled_mag @ (mg + _ONE)
-        return self._stamp(src, key, m.time_boot_ms, 1e-3, gyr, acc, mag, arrival,
-                           (m.xgyro, m.ygyro, m.zgyro, m.xacc, m.yacc, m.zacc))
+        return self._stamp(src, key, m.time_boot_ms, 1e-3,
+                           _Pending(gyr, acc, mag, arrival, ()), g + a)
 
-    def _highres_imu(self, m: MAVLinkMessage, arrival: float | None) -> ImuSample | None:
-        key = SourceKey(m.get_srcSystem(), m.get_srcComponent(), int(m.id))
+    def _highres_imu(self, m: MAVLinkMessage, key: SourceKey,
+                     arrival: float) -> list[ImuSample]:
         src = self._source(key, 1e-6, C.WRAP_32)
         g = (m.xgyro, m.ygyro, m.zgyro)
         if not all(map(math.isfinite, g)):
             src.counts["nonfinite"] += 1
-            return None
+            return []
+        lim = self.limits
         a = (m.xacc, m.yacc, m.zacc)
-        if all(map(math.isfinite, a)):
+        a_ok = all(map(math.isfinite, a))
+        # `not x <= limit` is also true for NaN.
+        if not max(map(abs, g)) <= lim.gyro_rad_s or \
+                (a_ok and not max(map(abs, a)) <= lim.accel_m_s2):
+            src.counts["implausible"] += 1
+            return []
+        flags: tuple[str, ...] = ()
+        if a_ok:
             acc = self._highres_acc @ (a + _ONE)
         else:
-            src.counts["acc_invalid"] += 1
+            flags += ("acc_invalid",)
             acc = np.full(3, np.nan)
         mg = (m.xmag, m.ymag, m.zmag)
         if mg == (0.0, 0.0, 0.0):
             mag = None
-        elif all(map(math.isfinite, mg)):
+        elif all(map(math.isfinite, mg)) and max(map(abs, mg)) <= lim.mag:
             mag = self._highres_mag @ (mg + _ONE)
         else:
-            src.counts["mag_invalid"] += 1
+            flags += ("mag_invalid",)
             mag = None
-        return self._stamp(src, key, m.time_usec, 1e-6, self._highres_gyr @ (g + _ONE), acc,
-                           mag, arrival,
+        return self._stamp(src, key, m.time_usec, 1e-6,
+                           _Pending(self._highres_gyr @ (g + _ONE), acc, mag, arrival, flags),
                            g + a)
 
     def _stamp(self, src: SourceState, key: SourceKey, raw_time: int, tick_s: float,
-               gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None,
-               arrival: float | None, content: object = None) -> ImuSample | None:
+               pending: _Pending, content: object) -> list[ImuSample]:
         clock = src.clock
         wraps = clock.wraps
-        verdict, ticks, dt = clock.classify(int(raw_time), content)
+        v = clock.classify(int(raw_time), pending.arrival, content, pending)
         if clock.wraps != wraps:
             src.counts["wrap"] += 1
-        if verdict not in C.ACCEPTED:
-            src.counts[verdict] += 1
-            return None
-        if verdict == C.RESYNC:
-            src.counts["resync"] += 1
-            # The samples dropped while confirming the new timeline were not glitches.
-            for earlier in clock.reclassified:
+        if not v.accepted:
+            src.counts[v.verdict] += 1
+            return []
+        restart = None
+        if v.verdict in (C.RESYNC, C.REBOOT):
+            src.counts[v.verdict] += 1
+            # The samples held while confirming the new timeline were not glitches.
+            for earlier in v.reclassified:
                 src.counts[earlier] -= 1
-                src.counts["clock_step"] += 1
-        now = time.perf_counter() if arrival is None else arrival
-        if src.accepted == 0:
-            src.first_arrival = now
-        src.accepted += 1
-        src.last_arrival = now
-        t = ticks * tick_s
-        if mag is not None:
-            mag = self._guard_mag(src, mag, t)
-        return ImuSample(key, t, round(t * 1e3) % C.WRAP_32, dt, gyr, acc, mag, now)
+        if v.verdict == C.GAP:
+            src.counts["gap"] += 1
+        if v.verdict == C.REBOOT:
+            restart = C.REBOOT
+        elif v.verdict in (C.GAP, C.RESYNC) and v.gap_s >= self.reinit_gap_s:
+            restart = C.GAP
+        if restart is not None:
+            src.counts["reinit"] += 1
+        out = []
+        for i, acc in enumerate(v.accepted):
+            p: _Pending = acc.payload
+            for flag in p.flags:
+                src.counts[flag] += 1
+            gyr = p.gyr
+            if "gyro_saturated" in p.flags and src.last_good_gyr is not None:
+                # A clipped gyro axis is known to be wrong (rate beyond range, or a
+                # knock); for a short event the last unclipped rate is the better guess.
+                gyr = src.last_good_gyr
+            else:
+                src.last_good_gyr = gyr
+            if src.accepted == 0:
+                src.first_arrival = p.arrival
+            src.accepted += 1
+            src.last_arrival = p.arrival
+            t = acc.ticks * tick_s
+            first_of_timeline = i == 0 and v.verdict != C.OK
+            if first_of_timeline:
+                src.mag_rejected_since = t  # time moved: re-anchoring counts from here
+            mag = p.mag
+            if mag is not None:
+                mag = self._guard_mag(src, mag, t)
+            out.append(ImuSample(key, t, round(t * 1e3) % C.WRAP_32, acc.dt, gyr, p.acc, mag,
+                                 p.arrival, restart if i == 0 else None))
+        return out
 
     def _guard_mag(self, src: SourceState, mag: np.ndarray, t: float) -> np.ndarray | None:
         """None for a reading whose strength is far from the usual (a magnet nearby).

@@ -1,9 +1,18 @@
 """asyncio MAVLink links: UDP in/out, TCP client, serial — bytes only, never blocking.
 
 Every link parses what it receives with its own :class:`MavCodec` and hands each valid
-message to ``on_message(msg, link)``; ``send(msg, sysid, compid)`` packs and writes
-without waiting (a slow or absent peer costs a counted drop, never a stalled loop).
-TCP and serial links reconnect by themselves with exponential backoff.
+message to ``on_message(msg, link)`` (``link.last_addr`` says who sent it);
+``send(msg, sysid, compid)`` packs and writes without waiting (a slow or absent peer
+costs a counted drop, never a stalled loop). TCP and serial links reconnect by
+themselves with exponential backoff, reset after a session that delivered messages,
+and give up on a connection that delivers no valid message for ``idle_timeout_s``
+(a peer that went silent, or stopped reading and let our output back up).
+
+A UDP ``udpin`` link answers only peers it has heard speak valid (and, with signing,
+verified) MAVLink: one byte from a spoofed address earns nothing. The peer table is
+bounded (``max_peers``, silent peers expire after ``peer_timeout_s``); refusals are
+counted. An optional ``gate(data)`` sees each datagram before it is parsed, so that a
+flood can be refused for the price of a header peek (see :mod:`bridge.admission`).
 
 URLs follow pymavlink: ``udpin:HOST:PORT`` (listen; reply to whoever sent to us),
 ``udpout:HOST:PORT`` (send to a fixed peer; ``udp:`` is an alias of ``udpin:``),
@@ -23,6 +32,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from .codec import MavCodec, SigningConfig
+from .kernelfilter import KernelFilter, Senders
 from .mav import MAVLinkMessage
 
 log = logging.getLogger(__name__)
@@ -30,14 +40,29 @@ log = logging.getLogger(__name__)
 #: A UDP peer that has sent nothing for this long no longer receives our output.
 PEER_TIMEOUT_S = 10.0
 PEER_REFRESH_S = 0.5
-#: Outgoing bytes allowed to queue on a stream link before new messages are dropped.
-MAX_WRITE_BUFFER = 256 * 1024
+MAX_PEERS = 32
+#: A stream link that delivers no valid message for this long is reconnected.
+IDLE_TIMEOUT_S = 5.0
+#: Outgoing bytes allowed to queue on a stream link before new messages are dropped (and
+#: the kernel's send buffer of a TCP link): queued attitudes only grow stale.
+MAX_WRITE_BUFFER = 64 * 1024
 BACKOFF_START_S = 0.25
 UDP_RECEIVE_BUFFER = 4 * 1024 * 1024
 MAX_DATAGRAMS_PER_WAKEUP = 512  # then let other callbacks run
 BACKOFF_MAX_S = 5.0
 
 MessageHandler = Callable[[MAVLinkMessage, "Link"], None]
+#: Sees each UDP datagram before parsing; False refuses it (the gate counts why).
+Gate = Callable[[bytes], bool]
+
+
+@dataclass(frozen=True)
+class LinkOptions:
+    """Bounds and timeouts of a link (see the module docstring)."""
+
+    max_peers: int = MAX_PEERS
+    peer_timeout_s: float = PEER_TIMEOUT_S
+    idle_timeout_s: float = IDLE_TIMEOUT_S
 
 
 @dataclass(frozen=True)
@@ -87,19 +112,29 @@ class LinkStats:
     send_dropped: int = 0  # messages dropped because the peer was slow or absent
     send_errors: int = 0  # OS errors while sending (e.g. ICMP port unreachable)
     reconnects: int = 0
+    idle_timeouts: int = 0  # stream connections given up for delivering nothing
+    write_stalls: int = 0  # stream connections given up because the peer stopped reading
+    gate_refused: int = 0  # datagrams refused before parsing (see the gate's counts)
+    peers: int = 0  # UDP peers currently answered
+    peers_refused: int = 0  # new peers not answered because the table was full
+    peers_expired: int = 0  # peers dropped after peer_timeout_s of silence
 
 
 class Link:
     """Base class: codec, stats, and the message callback; subclasses move bytes."""
 
     def __init__(self, url: LinkUrl, on_message: MessageHandler | None = None,
-                 signing: SigningConfig | None = None) -> None:
+                 signing: SigningConfig | None = None,
+                 options: LinkOptions | None = None) -> None:
         self.url = url
         self.on_message = on_message
         self.signing = signing
+        self.options = options or LinkOptions()
         self.codec = MavCodec(signing)
         self.stats = LinkStats()
         self.last_receive = 0.0  # time.monotonic() of the last valid message
+        self.last_addr: tuple | None = None  # sender of the message being handled
+        self.gate: Gate | None = None
 
     @property
     def name(self) -> str:
@@ -132,12 +167,21 @@ class Link:
     def _write(self, data: bytes) -> None:
         raise NotImplementedError
 
-    def _received(self, data: bytes, codec: MavCodec | None = None,
-                  datagram: bool = False) -> None:
-        msgs = (codec or self.codec).parse(data, datagram)
+    def send_to(self, msg: MAVLinkMessage, sysid: int, compid: int,
+                addr: tuple | None) -> None:
+        """Like :meth:`send`, to one peer only where the transport has several."""
+        self.send(msg, sysid, compid)
+
+    def _received(self, data: bytes, datagram: bool = False,
+                  addr: tuple | None = None) -> None:
+        """Parse and deliver (a UDP sender of valid messages becomes a peer first, so
+        that the output they cause reaches it too)."""
+        msgs = self.codec.parse(data, datagram)
         if not msgs:
             return
         self.last_receive = time.monotonic()
+        if addr is not None:
+            self._heard(addr)
         if self.on_message is None:
             return
         for msg in msgs:
@@ -146,26 +190,43 @@ class Link:
             except Exception:  # one bad message must not kill the link
                 log.exception("%s: handling %s failed", self.name, msg.get_type())
 
+    def _heard(self, addr: tuple) -> None:
+        """A peer at ``addr`` spoke valid MAVLink (datagram links only)."""
+
 
 class UdpLink(Link):
-    """``udpin`` listens and answers every peer heard from in the last PEER_TIMEOUT_S;
-    ``udpout`` sends to one fixed address and also reads its replies.
+    """``udpin`` listens and answers the peers it heard valid MAVLink from in the last
+    ``peer_timeout_s``; ``udpout`` sends to one fixed address and also reads its replies.
 
     A plain non-blocking socket read through ``add_reader``: each readiness event drains
     every queued datagram (asyncio's datagram transport reads one per loop iteration,
-    which lets a fast sender overflow the socket buffer).
+    which lets a fast sender overflow the socket buffer). One parser serves all peers:
+    a datagram holds whole packets, so whatever is left of one is discarded before the
+    next is parsed and nothing of one peer's input can merge with another's.
     """
 
     def __init__(self, url: LinkUrl, on_message: MessageHandler | None = None,
-                 signing: SigningConfig | None = None) -> None:
-        super().__init__(url, on_message, signing)
+                 signing: SigningConfig | None = None,
+                 options: LinkOptions | None = None) -> None:
+        super().__init__(url, on_message, signing, options)
         self._sock: socket.socket | None = None
-        # Per-peer parsers: a corrupt datagram's leftovers must not merge with another
-        # peer's next packet. The send side keeps the link codec's packers.
-        self._peers: dict[tuple, tuple[MavCodec, float]] = {}
+        self._peers: dict[tuple, float] = {}  # address -> monotonic time last heard
         self._target: tuple | None = None
         self._peer_list: list[tuple] = []
         self._peers_valid_until = 0.0
+        self._filter = KernelFilter()
+
+    def kernel_filter(self, vehicles: Senders | None) -> bool:
+        """Refuse, in the kernel, what only these senders may send (None: detach)."""
+        if self._sock is None:
+            return False
+        if vehicles is None:
+            self._filter.detach(self._sock)
+            return False
+        ok = self._filter.attach(self._sock, vehicles)
+        if ok:
+            log.warning("%s: flood of refused datagrams; kernel filter on", self.name)
+        return ok
 
     @property
     def connected(self) -> bool:
@@ -180,11 +241,16 @@ class UdpLink(Link):
 
     def peers(self) -> list[tuple]:
         """Peers heard from recently (recomputed at most every PEER_REFRESH_S: this is
-        on the per-sample output path)."""
+        on the per-sample output path); expired ones leave the table."""
         now = time.monotonic()
         if now >= self._peers_valid_until:
-            self._peer_list = [a for a, (_, seen) in self._peers.items()
-                               if now - seen < PEER_TIMEOUT_S]
+            timeout = self.options.peer_timeout_s
+            expired = [a for a, seen in self._peers.items() if now - seen >= timeout]
+            for addr in expired:
+                del self._peers[addr]
+            self.stats.peers_expired += len(expired)
+            self._peer_list = list(self._peers)
+            self.stats.peers = len(self._peer_list)
             self._peers_valid_until = now + PEER_REFRESH_S
         return self._peer_list
 
@@ -213,52 +279,87 @@ class UdpLink(Link):
             sock.close()
 
     def _readable(self) -> None:
+        sock = self._sock
+        if sock is None:
+            return
+        gate = self.gate
+        recv = sock.recvfrom
         for _ in range(MAX_DATAGRAMS_PER_WAKEUP):
-            sock = self._sock
-            if sock is None:
-                return
             try:
-                data, addr = sock.recvfrom(65536)
+                data, addr = recv(65536)
             except (BlockingIOError, InterruptedError):
                 return
             except OSError:  # e.g. ICMP port unreachable reported on a udpout socket
                 self.stats.send_errors += 1
                 continue
-            self._datagram(data, addr)
+            if gate is not None and not gate(data):
+                self.stats.gate_refused += 1
+                continue
+            self.last_addr = addr
+            self._received(data, datagram=True, addr=addr)
+            if self._sock is None:
+                return
 
-    def _datagram(self, data: bytes, addr: tuple) -> None:
-        entry = self._peers.get(addr)
-        if entry is None:
-            self._peers_valid_until = 0.0  # a new peer: include it right away
-            codec = MavCodec(self.signing)
-            codec.stats = self.codec.stats  # one set of counters per link
-        else:
-            codec = entry[0]
-        self._peers[addr] = (codec, time.monotonic())
-        self._received(data, codec, datagram=True)
+    def _heard(self, addr: tuple) -> None:
+        """A peer spoke valid MAVLink: answer it from now on, if there is room."""
+        peers = self._peers
+        if addr in peers:
+            peers[addr] = time.monotonic()
+            return
+        if self._target is not None:
+            return  # udpout answers its fixed peer only
+        now = time.monotonic()
+        if len(peers) >= self.options.max_peers:
+            stalest = min(peers, key=peers.__getitem__)
+            if now - peers[stalest] < self.options.peer_timeout_s:
+                self.stats.peers_refused += 1
+                return
+            del peers[stalest]
+            self.stats.peers_expired += 1
+        peers[addr] = now
+        self._peers_valid_until = 0.0  # a new peer: include it right away
 
-    def _write(self, data: bytes) -> None:
+    def send_to(self, msg: MAVLinkMessage, sysid: int, compid: int,
+                addr: tuple | None) -> None:
+        target = addr if self._target is None else self._target
+        if self._sock is None or target is None:
+            self.stats.send_dropped += 1
+            return
+        self._sendto(self.codec.pack(msg, sysid, compid), target)
+
+    def _sendto(self, data: bytes, addr: tuple) -> None:
         sock = self._sock
         if sock is None:
             return
+        try:
+            sock.sendto(data, addr)
+        except BlockingIOError:
+            self.stats.send_dropped += 1
+        except OSError:
+            self.stats.send_errors += 1
+
+    def _write(self, data: bytes) -> None:
         targets = [self._target] if self._target is not None else self.peers()
         for addr in targets:
-            try:
-                sock.sendto(data, addr)
-            except BlockingIOError:
-                self.stats.send_dropped += 1
-            except OSError:
-                self.stats.send_errors += 1
+            self._sendto(data, addr)
 
 
 class _StreamLink(Link):
-    """Shared reconnect-with-backoff loop of byte-stream links (TCP, serial)."""
+    """Shared reconnect-with-backoff loop of byte-stream links (TCP, serial).
+
+    A session ends when the transport fails or when it has delivered no valid message
+    for ``idle_timeout_s`` (the peer went silent mid-frame, or stopped reading so that
+    our output backs up and nothing comes back either). The backoff starts over after
+    a session that delivered messages.
+    """
 
     def __init__(self, url: LinkUrl, on_message: MessageHandler | None = None,
-                 signing: SigningConfig | None = None) -> None:
-        super().__init__(url, on_message, signing)
+                 signing: SigningConfig | None = None,
+                 options: LinkOptions | None = None) -> None:
+        super().__init__(url, on_message, signing, options)
         self._task: asyncio.Task | None = None
         self._closing = False
+        self._session_start = 0.0
 
     async def start(self) -> None:
         self._task = asyncio.create_task(self._run(), name=f"link {self.name}")
@@ -274,13 +375,15 @@ class _StreamLink(Link):
     async def _run(self) -> None:
         backoff = BACKOFF_START_S
         while not self._closing:
+            self._session_start = time.monotonic()
             try:
                 await self._session()
-                backoff = BACKOFF_START_S  # it was up: retry promptly
             except asyncio.CancelledError:
                 raise
             except Exception as exc:
                 log.warning("%s: %s; retrying in %.1f s", self.name, exc, backoff)
+            if self.last_receive > self._session_start:
+                backoff = BACKOFF_START_S  # it worked: retry promptly
             self._disconnect()
             if self._closing:
                 break
@@ -288,8 +391,20 @@ class _StreamLink(Link):
             await asyncio.sleep(backoff)
             backoff = min(2.0 * backoff, BACKOFF_MAX_S)
 
+    def _idle(self) -> bool:
+        """No valid message for idle_timeout_s in this session."""
+        since = max(self.last_receive, self._session_start)
+        if time.monotonic() - since < self.options.idle_timeout_s:
+            return False
+        self.stats.idle_timeouts += 1
+        return True
+
+    @property
+    def _watch_period(self) -> float:
+        return max(0.05, self.options.idle_timeout_s / 4.0)
+
     async def _session(self) -> None:
-        """Connect, then read until the connection ends."""
+        """Connect, then read until the connection ends or goes idle."""
         raise NotImplementedError
 
     def _disconnect(self) -> None:
@@ -297,30 +412,52 @@ class _StreamLink(Link):
 
 
 class TcpLink(_StreamLink):
-    """TCP client (e.g. SITL on tcp:127.0.0.1:5760)."""
+    """TCP client (e.g. SITL on tcp:127.0.0.1:5760), with TCP keep-alive."""
 
     def __init__(self, url: LinkUrl, on_message: MessageHandler | None = None,
-                 signing: SigningConfig | None = None) -> None:
-        super().__init__(url, on_message, signing)
+                 signing: SigningConfig | None = None,
+                 options: LinkOptions | None = None) -> None:
+        super().__init__(url, on_message, signing, options)
         self._writer: asyncio.StreamWriter | None = None
+        self._blocked_since: float | None = None  # our output backed up since then
 
     @property
     def connected(self) -> bool:
         return self._writer is not None and not self._writer.is_closing()
 
     async def _session(self) -> None:
-        reader, self._writer = await asyncio.open_connection(self.url.host, self.url.port)
+        reader, self._writer = await asyncio.wait_for(
+            asyncio.open_connection(self.url.host, self.url.port),
+            max(1.0, self.options.idle_timeout_s))
+        sock = self._writer.get_extra_info("socket")
+        _keepalive(sock, self.options.idle_timeout_s)
+        with contextlib.suppress(OSError, AttributeError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, MAX_WRITE_BUFFER)
         log.info("%s: connected", self.name)
         self.codec.reset_parser()  # drop a partial frame left by the old connection
         while True:
-            data = await reader.read(65536)
-            if not data:
+            try:
+                data = await asyncio.wait_for(reader.read(65536), self._watch_period)
+            except TimeoutError:
+                data = None
+            if data is not None and not data:
                 raise ConnectionError("connection closed by peer")
-            self._received(data)
+            if data:
+                self._received(data)
+            if self._idle():
+                raise ConnectionError(
+                    f"no valid message for {self.options.idle_timeout_s:g} s")
+            blocked = self._blocked_since
+            if blocked is not None and \
+                    time.monotonic() - blocked >= self.options.idle_timeout_s:
+                self.stats.write_stalls += 1
+                raise ConnectionError(f"peer has not read our output for "
+                                      f"{self.options.idle_timeout_s:g} s")
 
     def _disconnect(self) -> None:
+        self._blocked_since = None
         if self._writer is not None:
-            self._writer.close()
+            self._writer.transport.abort()  # a peer that stopped reading: do not wait
             self._writer = None
 
     def _write(self, data: bytes) -> None:
@@ -329,16 +466,32 @@ class TcpLink(_StreamLink):
             return
         if writer.transport.get_write_buffer_size() > MAX_WRITE_BUFFER:
             self.stats.send_dropped += 1
+            if self._blocked_since is None:
+                self._blocked_since = time.monotonic()
             return
+        self._blocked_since = None
         writer.write(data)
+
+
+def _keepalive(sock: socket.socket | None, idle_s: float) -> None:
+    """Let the kernel probe a connection whose peer vanished without a FIN."""
+    if sock is None:
+        return
+    with contextlib.suppress(OSError, AttributeError):
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+        secs = max(1, int(idle_s))
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPIDLE, secs)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPINTVL, secs)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPCNT, 3)
 
 
 class SerialLink(_StreamLink):
     """A serial port via pyserial in non-blocking mode, read through ``add_reader``."""
 
     def __init__(self, url: LinkUrl, on_message: MessageHandler | None = None,
-                 signing: SigningConfig | None = None) -> None:
-        super().__init__(url, on_message, signing)
+                 signing: SigningConfig | None = None,
+                 options: LinkOptions | None = None) -> None:
+        super().__init__(url, on_message, signing, options)
         self._port = None
         self._lost: asyncio.Future | None = None
         self._pending = bytearray()  # output the port could not take yet
@@ -356,7 +509,12 @@ class SerialLink(_StreamLink):
         self._lost = loop.create_future()
         loop.add_reader(port.fileno(), self._readable)
         log.info("%s: open", self.name)
-        await self._lost
+        while True:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(asyncio.shield(self._lost), self._watch_period)
+            if self._idle():
+                raise ConnectionError(
+                    f"no valid message for {self.options.idle_timeout_s:g} s")
 
     def _readable(self) -> None:
         port = self._port
@@ -430,11 +588,12 @@ class SerialLink(_StreamLink):
 
 
 def open_link(url: str | LinkUrl, on_message: MessageHandler | None = None,
-              signing: SigningConfig | None = None) -> Link:
+              signing: SigningConfig | None = None,
+              options: LinkOptions | None = None) -> Link:
     """A not-yet-started link for ``url``."""
     parsed = parse_url(url) if isinstance(url, str) else url
     if parsed.kind in ("udpin", "udpout"):
-        return UdpLink(parsed, on_message, signing)
+        return UdpLink(parsed, on_message, signing, options)
     if parsed.kind == "tcp":
-        return TcpLink(parsed, on_message, signing)
-    return SerialLink(parsed, on_message, signing)
+        return TcpLink(parsed, on_message, signing, options)
+    return SerialLink(parsed, on_message, signing, options)

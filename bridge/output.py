@@ -44,6 +44,7 @@ class AttitudeOutput:
         self.period = 1.0 / out_rate if out_rate > 0 else 0.0
         self._next_t: dict[SourceKey, float] = {}
         self.sent: dict[int, int] = {}  # per sysid: estimates sent
+        self.held: dict[int, int] = {}  # per sysid: estimates not sent while initialising
         self.latency = TimeRing(latency_samples, 1)  # seconds, IMU read -> output written
 
     def offer(self, est: Estimate) -> bool:
@@ -60,6 +61,18 @@ class AttitudeOutput:
             self._next_t[est.key] = nxt
         self.send_estimate(est)
         return True
+
+    def hold(self, est: Estimate) -> None:
+        """Count an estimate that is not sent: it is re-converging after a restart (an
+        ATTITUDE_QUATERNION has no field to say so, and a stale or unsettled attitude
+        must not reach a consumer as if it were current)."""
+        sysid = est.key.sysid
+        self.held[sysid] = self.held.get(sysid, 0) + 1
+        self._next_t.pop(est.key, None)
+
+    def forget(self, key: SourceKey) -> None:
+        """Drop the decimation schedule of a source that is gone."""
+        self._next_t.pop(key, None)
 
     def send_estimate(self, est: Estimate) -> None:
         q, r = est.q, est.rates

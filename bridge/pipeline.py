@@ -3,6 +3,11 @@
 The first estimator spec is the primary one: its attitude is what the bridge sends
 over MAVLink. All of them keep a short history for the live comparison and are
 published on MQTT.
+
+A sample marked ``restart`` (the vehicle rebooted, or came back after an outage) resets
+every estimator through its public API: the old attitude is stale and must not be
+published as if it were current. The estimate then counts as initialising until the
+estimator has initialised and ``settle_s`` of board time has passed.
 """
 
 from __future__ import annotations
@@ -37,14 +42,18 @@ class Estimate:
     q: np.ndarray  # [w, x, y, z] body FRD -> NED
     rates: np.ndarray  # bias-corrected body rates [rad/s]
     arrival: float  # perf_counter() when the IMU packet was read
+    initialising: bool = False  # re-converging after a restart: not to be trusted yet
 
 
 class SourcePipeline:
     """All estimators of one source, with a short history of each one's attitude."""
 
     def __init__(self, key: SourceKey, specs: list[EstimatorSpec], rate_hz: float,
-                 history: int, declination_rad: float = 0.0) -> None:
+                 history: int, declination_rad: float = 0.0, settle_s: float = 1.0) -> None:
         self.key = key
+        self.settle_s = settle_s
+        self.restarts = 0
+        self._settle_until: float | None = None
         self.labels = [s.label for s in specs]
         # The estimators turn their magnetic-north attitude to true north themselves.
         self.estimators = [s.create(rate_hz, declination=declination_rad) for s in specs]
@@ -52,7 +61,23 @@ class SourcePipeline:
         self.last_sample: ImuSample | None = None
         self.samples = 0
 
+    @property
+    def initialising(self) -> bool:
+        """Re-converging after a restart (its output is not to be trusted yet)."""
+        return self._settle_until is not None
+
+    def restart(self, t: float) -> None:
+        """Start every estimator over (from the next usable sample)."""
+        for est in self.estimators:
+            est.reset()
+        for ring in self.history.values():
+            ring.clear()
+        self.restarts += 1
+        self._settle_until = t + self.settle_s
+
     def process(self, sample: ImuSample) -> Estimate:
+        if sample.restart is not None:
+            self.restart(sample.t)
         primary_q = None
         for label, est in zip(self.labels, self.estimators, strict=True):
             q = est.update(sample.gyr, sample.acc, sample.mag, sample.dt)
@@ -63,8 +88,13 @@ class SourcePipeline:
         self.last_sample = sample
         primary = self.estimators[0]
         rates = sample.gyr - primary.bias
+        initialising = False
+        if self._settle_until is not None:
+            initialising = sample.t < self._settle_until or primary.status.initialising
+            if not initialising:
+                self._settle_until = None
         return Estimate(self.key, sample.t, sample.time_boot_ms, primary_q, rates,
-                        sample.arrival)
+                        sample.arrival, initialising)
 
     def status(self, label: str) -> estimators.EstimatorStatus:
         return self.estimators[self.labels.index(label)].status
@@ -74,7 +104,8 @@ class Pipeline:
     """Creates a :class:`SourcePipeline` the first time a source is heard."""
 
     def __init__(self, specs: list[EstimatorSpec], rate_hz: float = 1000.0,
-                 history_s: float = 10.0, declination_deg: float = 0.0) -> None:
+                 history_s: float = 10.0, declination_deg: float = 0.0,
+                 settle_s: float = 1.0) -> None:
         if not specs:
             raise ValueError("at least one estimator is needed")
         labels = [s.label for s in specs]
@@ -85,6 +116,7 @@ class Pipeline:
         self.specs = specs
         self.declination_rad = math.radians(declination_deg)
         self.rate_hz = rate_hz
+        self.settle_s = settle_s
         # Sized for the faster of the nominal rate and 2 kHz: the nominal rate is only
         # what was requested, the stream may well be faster.
         self.history = max(16, math.ceil(history_s * max(rate_hz, 2000.0) * 1.25))
@@ -98,6 +130,10 @@ class Pipeline:
         src = self.sources.get(sample.key)
         if src is None:
             src = SourcePipeline(sample.key, self.specs, self.rate_hz, self.history,
-                                 self.declination_rad)
+                                 self.declination_rad, self.settle_s)
             self.sources[sample.key] = src
         return src.process(sample)
+
+    def forget(self, key: SourceKey) -> None:
+        """Drop a source's estimators and history (it is no longer a primary)."""
+        self.sources.pop(key, None)

@@ -8,6 +8,7 @@ import contextlib
 import logging
 import signal
 import sys
+import tomllib
 
 import estimators
 
@@ -59,6 +60,40 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                         "input is then rejected and counted")
     p.add_argument("--allow-unsigned", action="store_true", default=None,
                    help="with --signing-key: accept unsigned input too")
+    g = p.add_argument_group("who is served, and bounds under attack")
+    g.add_argument("--vehicle", action="append", dest="vehicles", type=int, metavar="SYSID",
+                   help="system id to serve (repeatable); default: the first autopilot "
+                        "heard. Other system ids get nothing but our output")
+    g.add_argument("--imu-id", type=int, metavar="N",
+                   help="primary IMU index (RAW_IMU/HIGHRES_IMU id); default: the first heard")
+    g.add_argument("--truth-source", metavar="SYSID:COMPID",
+                   help="sender of HIL_STATE_QUATERNION truth (default: the vehicle's "
+                        "autopilot)")
+    g.add_argument("--max-peers", type=int, metavar="N",
+                   help="UDP peers answered at once (default 32)")
+    g.add_argument("--peer-timeout", dest="peer_timeout_s", type=float, metavar="S",
+                   help="a silent UDP peer stops getting output after S seconds (10)")
+    g.add_argument("--max-source-rate", type=float, metavar="MSG/S",
+                   help="messages per second per sender (sysid, compid) admitted to "
+                        "parsing (10000)")
+    g.add_argument("--source-timeout", dest="source_timeout_s", type=float, metavar="S",
+                   help="a primary IMU silent this long may be replaced (3)")
+    g.add_argument("--evict-after", dest="evict_after_s", type=float, metavar="S",
+                   help="drop a silent vehicle's estimators and history after S seconds (30)")
+    g.add_argument("--clock-resync", dest="clock_resync_s", type=float, metavar="S",
+                   help="board time of consistent stamps needed to adopt a new timeline (1)")
+    g.add_argument("--reinit-gap", dest="reinit_gap_s", type=float, metavar="S",
+                   help="an outage this long restarts the estimate (1)")
+    g.add_argument("--reinit-settle", dest="reinit_settle_s", type=float, metavar="S",
+                   help="after a restart, MAVLink output waits S seconds of board time (1)")
+    g.add_argument("--idle-timeout", dest="idle_timeout_s", type=float, metavar="S",
+                   help="TCP/serial: reconnect after S seconds without a valid message (5)")
+    g.add_argument("--gyro-range", dest="gyro_range_dps", type=float, metavar="DEG/S",
+                   help="gyro full scale: readings beyond it are rejected (2000)")
+    g.add_argument("--accel-range", dest="accel_range_g", type=float, metavar="G",
+                   help="accelerometer full scale (16)")
+    g.add_argument("--mag-range", dest="mag_range_gauss", type=float, metavar="GAUSS",
+                   help="magnetometer full scale (8)")
     p.add_argument("--config", metavar="FILE.toml", help="settings file (options override it)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--profile", dest="emulator_profile", metavar="NAME",
@@ -96,7 +131,10 @@ def config_from_args(args: argparse.Namespace, demo: bool) -> BridgeConfig:
         "declination_deg",
         "imu_message",
         "imu_rate", "out_rate", "component_id", "signing_key", "allow_unsigned", "duration",
-        "table", "emulator_profile", "emulator_seed", "emulator_fast")}
+        "table", "emulator_profile", "emulator_seed", "emulator_fast", "vehicles", "imu_id",
+        "truth_source", "max_peers", "peer_timeout_s", "max_source_rate", "source_timeout_s",
+        "evict_after_s", "clock_resync_s", "reinit_gap_s", "reinit_settle_s", "idle_timeout_s",
+        "gyro_range_dps", "accel_range_g", "mag_range_gauss")}
     if demo:
         overrides["connect"] = None
         if not args.estimators and not args.config:
@@ -143,7 +181,7 @@ def main(args: argparse.Namespace, demo: bool) -> int:
     try:
         cfg = config_from_args(args, demo)
         cfg.validate()
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, TypeError, tomllib.TOMLDecodeError) as exc:
         print(f"attitude-bridge: {exc}", file=sys.stderr)
         return 2
     return asyncio.run(serve(cfg))

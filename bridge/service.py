@@ -5,6 +5,12 @@ estimators -> decimated MAVLink output) is synchronous inside the datagram callb
 so nothing queues between reading an IMU packet and sending its attitude. MQTT only
 ever gets a non-blocking enqueue; comparison, status and the live table run in a 1 Hz
 task off the sample path.
+
+Hostile input is refused as early as it can be and counted where it was refused: the
+UDP gate (:mod:`bridge.admission`) before parsing, the codec (CRC, signing), the
+vehicle table (:mod:`bridge.vehicle`: unserved system ids, non-primary IMUs, references
+from other senders), ingest (clock, plausibility). Per-vehicle state exists only for
+served vehicles and is dropped after ``evict_after_s`` of silence.
 """
 
 from __future__ import annotations
@@ -15,7 +21,6 @@ import logging
 import math
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -23,16 +28,24 @@ import numpy as np
 from imu.boards import board_profile
 from imu.rotations import rotation_matrix
 
+from .admission import Admission
 from .codec import SigningConfig, load_signing_key
-from .compare import References, compare_all
+from .compare import compare_all
 from .config import BridgeConfig
-from .ingest import DROP_CAUSES, FLAG_CAUSES, IMU_MESSAGE_IDS, IMU_MESSAGE_NAMES, Ingest
-from .links import Link, UdpLink, open_link, parse_url
+from .ingest import (
+    DROP_CAUSES,
+    FLAG_CAUSES,
+    IMU_MESSAGE_IDS,
+    IMU_MESSAGE_NAMES,
+    Ingest,
+    Limits,
+)
+from .links import Link, LinkOptions, UdpLink, open_link, parse_url
 from .mav import MAVLinkMessage, mavlink
 from .mqtt import MqttPublisher, MqttSettings
 from .output import AttitudeOutput, euler_zyx
 from .pipeline import Estimate, Pipeline
-from .sequence import SequenceTracker
+from .vehicle import CONFIGURED, HEARTBEAT, PROVISIONAL, Vehicle
 
 log = logging.getLogger(__name__)
 
@@ -41,31 +54,23 @@ ID_HIL_STATE_QUATERNION = mavlink.MAVLINK_MSG_ID_HIL_STATE_QUATERNION
 ID_ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
 ID_ATTITUDE_QUATERNION = mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
 ID_COMMAND_ACK = mavlink.MAVLINK_MSG_ID_COMMAND_ACK
+ID_SYSTEM_TIME = mavlink.MAVLINK_MSG_ID_SYSTEM_TIME
 
-#: Ask again for the IMU stream after this long without samples, backing off to the max.
+#: Ask again for the IMU stream after this long without samples, backing off to the max;
+#: only while the vehicle's autopilot is heard (its heartbeat within HEARTBEAT_ALIVE_S).
 STREAM_SILENCE_S = 2.0
 STREAM_RETRY_MAX_S = 30.0
+HEARTBEAT_ALIVE_S = 5.0
+#: Vehicle types whose heartbeat does not make them a vehicle to serve.
+NOT_VEHICLES = frozenset((mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLER))
 
 #: Starts an emulator sending to the given UDP port; returns its awaitable run.
 EmulatorStarter = Callable[[int], Awaitable[Any]]
 
 
-@dataclass
-class Vehicle:
-    """What the bridge knows about one system id on the connection."""
-
-    sysid: int
-    autopilot_compid: int | None = None
-    heartbeats: int = 0
-    last_imu: float = 0.0  # monotonic time of the last accepted IMU sample
-    stream_requests: int = 0
-    next_request: float = 0.0
-    request_backoff: float = STREAM_SILENCE_S
-    command_acks: int = 0
-    refs: References = field(default_factory=References)
-    sequences: dict[int, SequenceTracker] = field(default_factory=dict)
-    next_mqtt_t: dict[Any, float] = field(default_factory=dict)
-    samples_at_last_status: int = 0
+def is_autopilot(msg: MAVLinkMessage) -> bool:
+    """A HEARTBEAT from a flight controller (not a GCS, companion or peer bridge)."""
+    return msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID and msg.type not in NOT_VEHICLES
 
 
 class BridgeService:
@@ -80,13 +85,26 @@ class BridgeService:
                                          allow_unsigned=cfg.allow_unsigned)
         self.emulator = emulator
         connect = cfg.connect or "udpin:127.0.0.1:0"
-        self.link: Link = open_link(parse_url(connect), self._on_message, self.signing)
-        self.outs: list[Link] = [open_link(u, self._on_out_message, self.signing)
+        options = LinkOptions(max_peers=cfg.max_peers, peer_timeout_s=cfg.peer_timeout_s,
+                              idle_timeout_s=cfg.idle_timeout_s)
+        self.link: Link = open_link(parse_url(connect), self._on_message, self.signing,
+                                    options)
+        # The built-in emulator is trusted and may run faster than real time (--fast).
+        self.admission = Admission(None if emulator is not None else cfg.max_source_rate)
+        self.link.gate = self.admission
+        if isinstance(self.link, UdpLink):
+            self.admission.on_flood = self.link.kernel_filter
+        self.outs: list[Link] = [open_link(u, self._on_out_message, self.signing, options)
                                  for u in cfg.outs]
+        for out in self.outs:
+            out.gate = Admission(cfg.max_source_rate)
         self.ingest = Ingest(board_profile(cfg.board), rotation_matrix(cfg.rotation),
-                             cfg.jump_s, cfg.reorder_s, cfg.sensor_calibration())
+                             cfg.jump_s, cfg.reorder_s, cfg.sensor_calibration(),
+                             Limits(cfg.gyro_range_dps, cfg.accel_range_g,
+                                    cfg.mag_range_gauss),
+                             cfg.clock_resync_s, cfg.reinit_gap_s)
         self.pipeline = Pipeline(cfg.estimator_specs, cfg.imu_rate, cfg.window_s + 2.0,
-                                 cfg.declination_deg or 0.0)
+                                 cfg.declination_deg or 0.0, cfg.reinit_settle_s)
         self.output = AttitudeOutput([self.link, *self.outs], cfg.component_id, cfg.out_rate)
         self.mqtt: MqttPublisher | None = None
         if cfg.mqtt:
@@ -95,6 +113,11 @@ class BridgeService:
                 tls=cfg.mqtt_tls or None, ca_file=cfg.mqtt_ca, cert_file=cfg.mqtt_cert,
                 key_file=cfg.mqtt_key, topic_prefix=cfg.mqtt_prefix))
         self.vehicles: dict[int, Vehicle] = {}
+        for sysid in cfg.vehicles:
+            self._add_vehicle(sysid, CONFIGURED)
+        self.truth = cfg.truth
+        #: Messages refused by the service (after parsing), by cause.
+        self.refused = {"not_vehicle": 0, "vehicles_replaced": 0, "evicted": 0}
         self.started = time.monotonic()
         self.last_status: dict[int, dict[str, Any]] = {}
         self.on_status: Callable[[BridgeService], None] | None = None
@@ -165,20 +188,60 @@ class BridgeService:
             await asyncio.sleep(self.cfg.status_period_s)
             try:
                 self._request_streams()
+                self._evict()
                 self.publish_status()
             except Exception:
                 log.exception("status update failed")
 
+    # --- who is served -----------------------------------------------------------------
+    def _add_vehicle(self, sysid: int, how: str) -> Vehicle:
+        v = self.vehicles[sysid] = Vehicle(sysid, admitted_by=how,
+                                           request_backoff=STREAM_SILENCE_S)
+        self.admission.admit_vehicle(sysid)
+        log.info("vehicle %d admitted (%s)", sysid, how)
+        return v
+
+    def _drop_state(self, vehicle: Vehicle) -> None:
+        """Forget a vehicle's estimators, clock and references (kept: who it is)."""
+        if vehicle.primary is not None:
+            self.ingest.forget(vehicle.primary)
+            self.pipeline.forget(vehicle.primary)
+            self.output.forget(vehicle.primary)
+        vehicle.primary = None
+        vehicle.refs = None
+        vehicle.sequences.clear()
+        vehicle.next_mqtt_t.clear()
+
+    def _admit(self, sysid: int, msg: MAVLinkMessage, msg_id: int) -> Vehicle | None:
+        """A vehicle for a system id not served yet, if it may become one (learning)."""
+        if self.cfg.vehicles:
+            return None
+        if msg_id == ID_HEARTBEAT and is_autopilot(msg):
+            current = list(self.vehicles.values())
+            if current and current[0].admitted_by != PROVISIONAL:
+                return None
+            for old in current:  # a bare IMU stream gives way to a real autopilot
+                self._drop_state(old)
+                del self.vehicles[old.sysid]
+                self.admission.forget_vehicle(old.sysid)
+                self.refused["vehicles_replaced"] += 1
+            return self._add_vehicle(sysid, HEARTBEAT)
+        if msg_id in IMU_MESSAGE_IDS and not self.vehicles:
+            return self._add_vehicle(sysid, PROVISIONAL)
+        return None
+
+    def _evict(self) -> None:
+        """Drop the heavy state of vehicles silent for evict_after_s."""
+        now = time.monotonic()
+        for vehicle in self.vehicles.values():
+            has_state = vehicle.primary is not None or vehicle.refs is not None
+            if has_state and now - vehicle.last_heard > self.cfg.evict_after_s:
+                self._drop_state(vehicle)
+                self.refused["evicted"] += 1
+
     # --- input -------------------------------------------------------------------------
     def _on_out_message(self, msg: MAVLinkMessage, link: Link) -> None:
         """Output links only deliver; what their peers say (heartbeats) is ignored."""
-
-    def _vehicle(self, sysid: int) -> Vehicle:
-        v = self.vehicles.get(sysid)
-        if v is None:
-            v = self.vehicles[sysid] = Vehicle(sysid)
-            log.info("vehicle %d seen", sysid)
-        return v
 
     def _on_message(self, msg: MAVLinkMessage, link: Link) -> None:
         arrival = time.perf_counter()
@@ -187,46 +250,110 @@ class BridgeService:
         if compid == self.cfg.component_id:
             return  # our own output echoed back, or a peer bridge: not vehicle data
         msg_id = header.msgId
-        vehicle = self._vehicle(sysid)
-        tracker = vehicle.sequences.get(compid)
-        if tracker is None:
-            tracker = vehicle.sequences[compid] = SequenceTracker()
-        tracker.observe(header.seq)
-        if msg_id in IMU_MESSAGE_IDS:
-            sample = self.ingest.handle(msg, arrival)
-            if sample is None:
+        vehicle = self.vehicles.get(sysid)
+        if vehicle is None:
+            vehicle = self._admit(sysid, msg, msg_id)
+            if vehicle is None:
+                self.refused["not_vehicle"] += 1
                 return
-            vehicle.last_imu = time.monotonic()
-            vehicle.request_backoff = STREAM_SILENCE_S
-            est = self.pipeline.process(sample)
-            self.output.offer(est)
-            if self.mqtt is not None:
-                self._maybe_publish_estimates(vehicle, est)
+        now = time.monotonic()
+        vehicle.last_heard = now
+        vehicle.observe_sequence(compid, header.seq)
+        if msg_id in IMU_MESSAGE_IDS:
+            self._imu(vehicle, msg, link, arrival, now)
         elif msg_id == ID_HEARTBEAT:
-            vehicle.heartbeats += 1
-            if msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID and \
-                    vehicle.autopilot_compid is None:
-                vehicle.autopilot_compid = compid
-                self._request_stream(vehicle)
+            self._heartbeat(vehicle, msg, compid, link, now)
         elif msg_id == ID_HIL_STATE_QUATERNION:
-            vehicle.refs.add_truth(msg.time_usec * 1e-6, np.array(msg.attitude_quaternion))
-        elif msg_id == ID_ATTITUDE_QUATERNION:
-            vehicle.refs.add_vehicle_quaternion(
-                msg.time_boot_ms * 1e-3, np.array([msg.q1, msg.q2, msg.q3, msg.q4]))
-        elif msg_id == ID_ATTITUDE:
-            vehicle.refs.add_vehicle_euler(msg.time_boot_ms * 1e-3, msg.roll, msg.pitch,
-                                           msg.yaw)
+            if (sysid, compid) == (self.truth or (sysid, vehicle.reference_compid())):
+                vehicle.references().add_truth(msg.time_usec * 1e-6,
+                                               np.array(msg.attitude_quaternion))
+            else:
+                vehicle.refused["refs_refused"] += 1
+        elif msg_id in (ID_ATTITUDE_QUATERNION, ID_ATTITUDE):
+            if compid != vehicle.reference_compid():
+                vehicle.refused["refs_refused"] += 1
+            elif msg_id == ID_ATTITUDE_QUATERNION:
+                vehicle.references().add_vehicle_quaternion(
+                    msg.time_boot_ms * 1e-3, np.array([msg.q1, msg.q2, msg.q3, msg.q4]))
+            else:
+                vehicle.references().add_vehicle_euler(msg.time_boot_ms * 1e-3, msg.roll,
+                                                       msg.pitch, msg.yaw)
+        elif msg_id == ID_SYSTEM_TIME:
+            if compid == vehicle.reference_compid():
+                vehicle.boot_hint = (msg.time_boot_ms * 1e-3, arrival)
         elif msg_id == ID_COMMAND_ACK:
             vehicle.command_acks += 1
 
+    def _heartbeat(self, vehicle: Vehicle, msg: MAVLinkMessage, compid: int, link: Link,
+                   now: float) -> None:
+        if not is_autopilot(msg):
+            return
+        if vehicle.autopilot_compid is None:
+            vehicle.autopilot_compid = compid
+            if vehicle.admitted_by == PROVISIONAL:
+                vehicle.admitted_by = HEARTBEAT
+            # From now on the gate lets only the autopilot (and the truth source) of this
+            # system id send more than heartbeats.
+            comps = {compid}
+            if self.truth is not None and self.truth[0] == vehicle.sysid:
+                comps.add(self.truth[1])
+            self.admission.admit_vehicle(vehicle.sysid, frozenset(comps))
+        if compid != vehicle.autopilot_compid:
+            vehicle.refused["other_component"] += 1
+            return
+        vehicle.heartbeats += 1
+        vehicle.last_heartbeat = now
+        vehicle.link, vehicle.address = link, link.last_addr
+        if vehicle.stream_requests == 0:
+            self._request_stream(vehicle)
+
+    def _imu(self, vehicle: Vehicle, msg: MAVLinkMessage, link: Link, arrival: float,
+             now: float) -> None:
+        key = self.ingest.key_of(msg)
+        assert key is not None
+        old = vehicle.primary
+        use, new = vehicle.choose_source(key, now, self.cfg.imu_id, self.imu_msg_id,
+                                         self.cfg.source_timeout_s)
+        if not use:
+            return
+        if new:
+            for stale in (old, key):
+                if stale is not None:
+                    self.ingest.forget(stale)
+                    self.pipeline.forget(stale)
+                    self.output.forget(stale)
+        state = self.ingest.sources.get(key)
+        if state is not None:
+            state.clock.boot_hint = vehicle.boot_hint
+        samples = self.ingest.handle_all(msg, arrival, key)
+        if not samples:
+            return
+        vehicle.last_imu = now
+        vehicle.request_backoff = STREAM_SILENCE_S
+        if vehicle.autopilot_compid is None or key.compid == vehicle.autopilot_compid:
+            vehicle.link, vehicle.address = link, link.last_addr
+        for sample in samples:
+            if sample.restart == "reboot" and vehicle.refs is not None:
+                vehicle.refs = None  # the references' clock restarted too
+            est = self.pipeline.process(sample)
+            if est.initialising:
+                self.output.hold(est)
+            else:
+                self.output.offer(est)
+            if self.mqtt is not None:
+                self._maybe_publish_estimates(vehicle, est)
+
     # --- IMU stream requests -------------------------------------------------------------
     def _request_stream(self, vehicle: Vehicle) -> None:
-        """MAV_CMD_SET_MESSAGE_INTERVAL for the configured IMU message and rate."""
+        """MAV_CMD_SET_MESSAGE_INTERVAL for the configured IMU message and rate, to the
+        vehicle's own address only."""
+        if vehicle.link is None:
+            return
         cmd = mavlink.MAVLink_command_long_message(
             vehicle.sysid, vehicle.autopilot_compid or 1,
             mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
             float(self.imu_msg_id), 1e6 / self.cfg.imu_rate, 0, 0, 0, 0, 0)
-        self.link.send(cmd, vehicle.sysid, self.cfg.component_id)
+        vehicle.link.send_to(cmd, vehicle.sysid, self.cfg.component_id, vehicle.address)
         vehicle.stream_requests += 1
         vehicle.next_request = time.monotonic() + vehicle.request_backoff
         log.info("asked vehicle %d for %s at %g Hz", vehicle.sysid, self.cfg.imu_message,
@@ -237,6 +364,8 @@ class BridgeService:
         for vehicle in self.vehicles.values():
             if vehicle.autopilot_compid is None or now < vehicle.next_request:
                 continue
+            if now - vehicle.last_heartbeat > HEARTBEAT_ALIVE_S:
+                continue  # nobody there to ask
             if now - vehicle.last_imu > STREAM_SILENCE_S:
                 self._request_stream(vehicle)
                 vehicle.request_backoff = min(2.0 * vehicle.request_backoff,
@@ -265,61 +394,77 @@ class BridgeService:
                               "pitch": _finite(math.degrees(pitch)),
                               "yaw": _finite(math.degrees(yaw))},
                 "bias_rad_s": _finite_list(st.bias),
-                "flags": {"initialising": st.initialising, "acc_rejected": st.acc_rejected,
-                          "mag_rejected": st.mag_rejected},
+                "flags": {"initialising": st.initialising or est.initialising,
+                          "acc_rejected": st.acc_rejected, "mag_rejected": st.mag_rejected},
             })
 
     # --- status --------------------------------------------------------------------------
     def vehicle_status(self, vehicle: Vehicle, elapsed: float) -> dict[str, Any]:
-        """Rates, drops by cause, latency and the live comparison of one vehicle."""
+        """Rates, drops and refusals by cause, latency and the live comparison of one
+        vehicle."""
         sources = {k: s for k, s in self.ingest.sources.items() if k.sysid == vehicle.sysid}
         samples = sum(s.accepted for s in sources.values())
+        if samples < vehicle.samples_at_last_status:  # its state was dropped meanwhile
+            vehicle.samples_at_last_status = 0
         rate = (samples - vehicle.samples_at_last_status) / elapsed if elapsed > 0 else 0.0
         vehicle.samples_at_last_status = samples
         drops = dict.fromkeys(DROP_CAUSES, 0)
         flags = dict.fromkeys(FLAG_CAUSES, 0)
+        pending = 0
         for s in sources.values():
             for cause in DROP_CAUSES:
                 drops[cause] += s.counts[cause]
             for cause in FLAG_CAUSES:
                 flags[cause] += s.counts[cause]
+            pending += s.clock.pending
         link = {"lost": sum(t.lost for t in vehicle.sequences.values()),
                 "late": sum(t.late for t in vehicle.sequences.values()),
                 "repeated": sum(t.duplicate for t in vehicle.sequences.values())}
         compare: dict[str, Any] = {}
         counters: dict[str, Any] = {}
         t_last = None
-        for key, src in self.pipeline.sources.items():
-            if key.sysid != vehicle.sysid:
-                continue
+        restarts = 0
+        initialising = False
+        src = self.pipeline.sources.get(vehicle.primary) if vehicle.primary else None
+        if src is not None:
+            restarts = src.restarts
             if src.last_sample is not None:
                 t_last = src.last_sample.t
+            initialising = src.initialising
             for label, est in zip(src.labels, src.estimators, strict=True):
                 counters[label] = est.counters.__dict__
-            for ref, by_label in compare_all(src.history, vehicle.refs,
-                                             self.cfg.window_s).items():
-                compare.setdefault(ref, {}).update(
-                    {label: c.to_dict() for label, c in by_label.items()})
-            break  # the first IMU of the vehicle is the one compared
-        status = {
+            if vehicle.refs is not None:
+                for ref, by_label in compare_all(src.history, vehicle.refs,
+                                                 self.cfg.window_s).items():
+                    compare[ref] = {label: c.to_dict() for label, c in by_label.items()}
+        return {
             "sysid": vehicle.sysid, "time_s": t_last, "samples": samples,
             "input_rate_hz": round(rate, 1), "sources": [list(k) for k in sources],
-            "drops": drops, "flags": flags, "link": link,
+            "primary": list(vehicle.primary) if vehicle.primary else None,
+            "admitted_by": vehicle.admitted_by, "source_switches": vehicle.source_switches,
+            "drops": drops, "flags": flags, "link": link, "refused": dict(vehicle.refused),
+            "clock_pending": pending, "restarts": restarts, "initialising": initialising,
             "sent": self.output.sent.get(vehicle.sysid, 0),
+            "held_initialising": self.output.held.get(vehicle.sysid, 0),
             "latency_ms": self.output.latency_percentiles_ms(),
             "estimator_counters": counters, "compare": compare,
             "stream_requests": vehicle.stream_requests,
         }
-        return status
 
     def link_status(self) -> dict[str, Any]:
         c = self.link.codec.stats
+        ls = self.link.stats
         s = {"bytes_in": c.bytes_in, "messages_in": c.messages_in, "bad_crc": c.bad_crc,
              "bad_frame": c.bad_frame, "unsigned_rejected": c.unsigned_rejected,
-             "unknown_message": c.unknown_message, "truncated": c.truncated,
-             "send_dropped": self.link.stats.send_dropped,
-             "send_errors": self.link.stats.send_errors,
-             "reconnects": self.link.stats.reconnects}
+             "unsigned_accepted": c.unsigned_accepted, "bad_signature": c.bad_signature,
+             "replayed": c.replayed, "unknown_message": c.unknown_message,
+             "truncated": c.truncated, "send_dropped": ls.send_dropped,
+             "send_errors": ls.send_errors, "reconnects": ls.reconnects,
+             "idle_timeouts": ls.idle_timeouts, "write_stalls": ls.write_stalls,
+             "peers": ls.peers,
+             "peers_refused": ls.peers_refused, "peers_expired": ls.peers_expired,
+             "gate": self.admission.stats.to_dict(), "refused": dict(self.refused),
+             "vehicles": sorted(self.vehicles)}
         if self.mqtt is not None:
             m = self.mqtt.stats
             s["mqtt"] = {"connected": m.connected, "published": m.published,
@@ -330,6 +475,7 @@ class BridgeService:
         now = time.monotonic()
         elapsed = now - self._last_status_wall
         self._last_status_wall = now
+        self.admission.tick(elapsed)
         link = self.link_status()
         for vehicle in list(self.vehicles.values()):
             status = self.vehicle_status(vehicle, elapsed)
@@ -337,6 +483,8 @@ class BridgeService:
             self.last_status[vehicle.sysid] = status
             if self.mqtt is not None:
                 self.mqtt.publish(self.mqtt.topic(vehicle.sysid, "status"), status)
+        for sysid in [s for s in self.last_status if s not in self.vehicles]:
+            del self.last_status[sysid]  # replaced (a provisional vehicle)
         if self.on_status is not None:
             self.on_status(self)
 

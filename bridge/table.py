@@ -88,7 +88,22 @@ def summary(service: BridgeService) -> str:
     for sysid, st in sorted(service.last_status.items()):
         drops = {k: v for k, v in st["drops"].items() if v}
         flags = {k: v for k, v in st["flags"].items() if v}
+        refused = {k: v for k, v in st["refused"].items() if v}
+        lat = st["latency_ms"]
         lines.append(f" vehicle {sysid}: {st['samples']} samples, {st['sent']} estimates "
-                     f"sent, drops {drops or 'none'}, flags {flags or 'none'}, "
-                     f"link lost {st['link']['lost']}")
+                     f"sent (latency p50 {_fmt(lat.get('p50'), '.2f')} ms, p99 "
+                     f"{_fmt(lat.get('p99'), '.2f')} ms), "
+                     f"drops {drops or 'none'}, flags {flags or 'none'}, "
+                     f"link lost {st['link']['lost']}, refused {refused or 'none'}, "
+                     f"restarts {st['restarts']} ({st['held_initialising']} estimates "
+                     f"held while initialising)")
+    link = service.link_status()
+    causes = {k: link[k] for k in ("bad_crc", "bad_frame", "truncated", "unsigned_rejected",
+                                   "unsigned_accepted", "bad_signature", "replayed",
+                                   "peers_refused", "peers_expired", "idle_timeouts",
+                                   "write_stalls", "reconnects") if link[k]}
+    causes.update({f"gate_{k}": v for k, v in link["gate"].items() if v})
+    causes.update({k: v for k, v in link["refused"].items() if v})
+    lines.append(f" connection: {link['peers']} peers answered, refused/dropped "
+                 f"{causes or 'nothing'}")
     return "\n".join(lines)

@@ -50,6 +50,21 @@ class CommonParams:
                                     "measurements (and longest age of one) that still aids")
 
 
+def _check_common(p: CommonParams) -> None:
+    """ValueError for common parameters no estimator can work with (an infinite
+    declination makes NaN quaternions, a negative max_dt skips every sample)."""
+    for name in ("acc_range", "gyr_range", "max_dt", "declination"):
+        value = float(getattr(p, name))
+        if not math.isfinite(value):
+            raise ValueError(f"parameter {name!r} must be finite, got {value!r}")
+    for name in ("acc_range", "gyr_range", "max_dt"):
+        if not float(getattr(p, name)) > 0.0:
+            raise ValueError(f"parameter {name!r} must be positive, got {getattr(p, name)!r}")
+    if abs(float(p.declination)) > math.pi:
+        raise ValueError(f"parameter 'declination' must be within ±pi rad, "
+                         f"got {p.declination!r}")
+
+
 @dataclass(frozen=True)
 class SampleCounters:
     """How many samples were offered, and what was skipped, unusable or rejected."""
@@ -154,7 +169,9 @@ class Estimator:
             if not isinstance(value, int | float | bool | np.number) or (
                     isinstance(value, float) and math.isnan(value)):
                 raise ValueError(f"parameter {key!r} must be a number, got {value!r}")
-        return cls.Params(**params)
+        made = cls.Params(**params)
+        _check_common(made)
+        return made
 
     @property
     def output_rotation(self) -> np.ndarray:

@@ -40,11 +40,12 @@ class UdpListener:
     messages: list = field(default_factory=list)
     parser: mavlink.MAVLink = field(default_factory=lambda: mavlink.MAVLink(None, 255, 0))
     sock: socket.socket | None = None
+    host: str = "127.0.0.1"  # any 127.x.y.z: another "machine" on the loopback network
 
     async def start(self) -> int:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 * 1024 * 1024)
-        self.sock.bind(("127.0.0.1", 0))
+        self.sock.bind((self.host, 0))
         self.sock.setblocking(False)
         asyncio.get_running_loop().add_reader(self.sock.fileno(), self._readable)
         return self.port
@@ -96,14 +97,14 @@ class MavSender:
     """
 
     def __init__(self, port: int, sysid: int = 1, compid: int = 1,
-                 signing_key: bytes | None = None) -> None:
+                 signing_key: bytes | None = None, host: str = "127.0.0.1") -> None:
         self.target = ("127.0.0.1", port)
         self.mav = mavlink.MAVLink(None, sysid, compid)
         if signing_key is not None:
             self.mav.signing.secret_key = signing_key
             self.mav.signing.sign_outgoing = True
             self.mav.signing.timestamp = int((time.time() - 1420070400) * 1e5)
-        self.listener = UdpListener()
+        self.listener = UdpListener(host=host)
         if signing_key is not None:  # verify what comes back: get_signed() is then True
             self.listener.parser.signing.secret_key = signing_key
 
@@ -144,6 +145,12 @@ def raw_imu(time_usec: int, q: np.ndarray, omega: np.ndarray = ZERO3,
             imu_id: int = 0) -> mavlink.MAVLink_raw_imu_message:
     acc, gyr, mag = gy86_counts(q, omega)
     return mavlink.MAVLink_raw_imu_message(time_usec, *acc, *gyr, *mag, imu_id, 2500)
+
+
+def autopilot_heartbeat() -> mavlink.MAVLink_heartbeat_message:
+    """What a PX4 quadrotor announces itself with."""
+    return mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_QUADROTOR,
+                                             mavlink.MAV_AUTOPILOT_PX4, 0, 0, 4, 3)
 
 
 def attitude_of(msgs: list) -> np.ndarray:

@@ -50,12 +50,18 @@ async def test_tcp_link_streams_and_reconnects_after_the_peer_drops():
     received: list[bytes] = []
     sessions = []
 
+    loop = asyncio.get_running_loop()
+    booted = loop.time() - 1.0
+
     async def vehicle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        """A TCP 'autopilot': 200 IMU samples, read the replies, then hang up."""
+        """A TCP 'autopilot' whose board clock runs in real time: 200 IMU samples at
+        500 Hz, read the replies, then hang up."""
         sessions.append(len(sessions))
         mav = mavlink.MAVLink(None, 1, 1)
-        writer.write(imu_bytes(mav, q0, 200, 1_000_000 + 2_000_000 * len(sessions)))
-        await writer.drain()
+        for _ in range(8):
+            writer.write(imu_bytes(mav, q0, 25, int((loop.time() - booted) * 1e6)))
+            await writer.drain()
+            await asyncio.sleep(0.05)
         with contextlib.suppress(TimeoutError):
             while data := await asyncio.wait_for(reader.read(65536), 0.4):
                 received.append(data)

@@ -4,16 +4,20 @@ codec (bad bytes, signing), ingest scaling, URL/estimator parsing, comparison.""
 from __future__ import annotations
 
 import math
+import socket
+import time
 
 import numpy as np
 import pytest
 from bridge_support import MAG_NED, G, euler_q, gy86_counts
 
 from bridge import clock as C
+from bridge.admission import Admission
 from bridge.codec import MavCodec, SigningConfig, load_signing_key, signing_key_from_text
 from bridge.compare import compare_series
 from bridge.config import BridgeConfig
 from bridge.ingest import Ingest
+from bridge.kernelfilter import MARK_LEN, SAMPLE, KernelFilter
 from bridge.links import parse_url
 from bridge.mav import mavlink
 from bridge.mqtt import MqttSettings
@@ -25,15 +29,18 @@ from imu.boards import gy86
 from imu.rotations import rotation_matrix
 
 
-def verdicts(clock: C.SampleClock, stamps: list[int]) -> list[str]:
-    return [clock.classify(s)[0] for s in stamps]
+def verdicts(clock: C.SampleClock, stamps: list[int], t0: float = 0.0,
+             pace_s: float = 0.001) -> list[str]:
+    """Verdicts of stamps arriving ``pace_s`` apart from local time ``t0``."""
+    return [clock.classify(s, t0 + i * pace_s).verdict for i, s in enumerate(stamps)]
 
 
 def test_clock_accepts_steady_stream_with_dt():
     clock = C.SampleClock(1e-6)
-    assert clock.classify(1000)[0] == C.FIRST
-    v, ticks, dt = clock.classify(2000)
-    assert (v, ticks) == (C.OK, 2000) and dt == pytest.approx(1e-3)
+    assert clock.classify(1000, 0.0).verdict == C.FIRST
+    v = clock.classify(2000, 0.001)
+    assert v.verdict == C.OK and v.accepted[0].ticks == 2000
+    assert v.accepted[0].dt == pytest.approx(1e-3)
 
 
 def test_clock_duplicate_reordered_and_isolated_glitches():
@@ -46,25 +53,116 @@ def test_clock_duplicate_reordered_and_isolated_glitches():
     assert verdicts(late, [1_000_000, 1_001_000, 100]) == ["first", "ok", "backwards"]
 
 
-def test_clock_resyncs_after_a_permanent_step_and_reclassifies():
-    clock = C.SampleClock(1e-6)
-    verdicts(clock, list(range(0, 10_000, 1000)))
-    # The board clock steps forward by 0.5 s and stays there.
-    v = verdicts(clock, [510_000, 511_000, 512_000, 513_000])
-    assert v == ["jump", "jump", "resync", "ok"]
-    assert clock.reclassified == [] or clock.reclassified == ["jump", "jump"]
-    # ... and backwards by 50 ms (inside the reorder window).
-    v = verdicts(clock, [464_000, 465_000, 466_000, 467_000])
-    assert v == ["reordered", "reordered", "resync", "ok"]
+def stream(clock: C.SampleClock, t0_us: int, n: int, arrival0: float,
+           step_us: int = 1000) -> list[C.Verdict]:
+    """n stamps step_us apart, arriving in real time from arrival0 (content: the arrival
+    time, as distinct as real sensor readings)."""
+    return [clock.classify(t0_us + i * step_us, arrival0 + i * step_us * 1e-6,
+                           arrival0 + i * step_us * 1e-6) for i in range(n)]
+
+
+def test_clock_adopts_a_permanent_step_only_on_sustained_evidence_and_loses_nothing():
+    clock = C.SampleClock(1e-6, resync_s=1.0)
+    stream(clock, 0, 100, 0.0)
+    # The board clock steps forward by 0.5 s and stays there: held for 1 s, then adopted
+    # with every held sample handed back in order.
+    after = stream(clock, 600_000, 1100, 0.1)
+    names = [v.verdict for v in after]
+    assert names[:1000] == ["jump"] * 1000 and names[1000] == "resync"
+    assert names[1001:] == ["ok"] * 99
+    adopted = after[1000]
+    assert [a.ticks for a in adopted.accepted] == [600_000 + 1000 * i for i in range(1001)]
+    assert adopted.reclassified == ["jump"] * 1000
+    # A step back by 50 ms (inside the reorder window) costs 50 ms of samples: the
+    # stream then overtakes the old timeline and simply continues.
+    back = [v.verdict for v in stream(clock, 1_650_000, 200, 1.2)]
+    assert back[:49] == ["reordered"] * 49 and back[49] == "backwards"
+    assert back[50:] == ["ok"] * 150
+
+
+def test_clock_never_flips_while_the_vehicle_keeps_talking():
+    """Bursts of agreeing forged stamps (10 s ahead, 10 min ahead, 10 s behind), even
+    sustained for seconds, between the real samples: the real timeline stays."""
+    clock = C.SampleClock(1e-6, resync_s=1.0)
+    stream(clock, 1_000_000, 10, 0.0)
+    real_ok = forged_used = 0
+    for i in range(10, 3000):
+        v = clock.classify(1_000_000 + i * 1000, i * 0.001)
+        real_ok += v.verdict == "ok"
+        for offset in (10_000_000, 600_000_000, -10_000_000):
+            f = clock.classify(1_000_000 + i * 1000 + offset, i * 0.001 + 0.0002)
+            forged_used += len(f.accepted)
+    assert real_ok == 2990 and forged_used == 0
+    assert clock.last_ticks == 1_000_000 + 2999 * 1000
+
+
+def test_clock_ignores_a_fast_burst_of_agreeing_stamps_during_silence():
+    """Two seconds of consistent stamps sent within 20 ms is no evidence of a timeline."""
+    clock = C.SampleClock(1e-6, resync_s=1.0)
+    stream(clock, 0, 100, 0.0)
+    burst = [clock.classify(50_000_000 + i * 1000, 0.2 + i * 1e-5) for i in range(2000)]
+    assert all(not v.accepted for v in burst)
+    # The real stream resumes (after silence it would be a gap; after the burst it needs
+    # the full evidence) and is adopted: none of the burst's stamps is ever used.
+    back = stream(clock, 300_000, 1100, 0.3)
+    names = [v.verdict for v in back]
+    assert "resync" in names and names[-1] == "ok"
+    used = [a.ticks for v in back for a in v.accepted]
+    assert used[0] == 300_000 and max(used) < 50_000_000
 
 
 def test_clock_unwraps_uint32_milliseconds():
     clock = C.SampleClock(1e-3)
     stamps = [2**32 - 2, 2**32 - 1, 0, 1]
-    v = [clock.classify(s) for s in stamps]
-    assert [x[0] for x in v] == ["first", "ok", "ok", "ok"]
-    assert [x[1] for x in v] == [2**32 - 2, 2**32 - 1, 2**32, 2**32 + 1]
+    v = [clock.classify(s, i * 0.001) for i, s in enumerate(stamps)]
+    assert [x.verdict for x in v] == ["first", "ok", "ok", "ok"]
+    assert [x.accepted[0].ticks for x in v] == [2**32 - 2, 2**32 - 1, 2**32, 2**32 + 1]
     assert clock.wraps == 1
+
+
+def test_clock_unwrap_is_not_moved_by_dropped_samples():
+    """Stamps one hour ahead (top quarter of the µs counter) or a 0 after 53.7 min of
+    uptime used to count as a counter wrap and shift every later sample by 2^32 µs."""
+    for forged in ([3_600_000_000] * 3, [0]):
+        clock = C.SampleClock(1e-6)
+        t0 = 3_222_000_000 if forged == [0] else 1_000_000
+        stream(clock, t0, 100, 0.0)
+        for i, f in enumerate(forged):
+            assert not clock.classify(f + i, 0.1 + i * 1e-4).accepted
+        later = stream(clock, t0 + 100_000, 100, 0.1001)
+        assert [v.verdict for v in later] == ["ok"] * 100
+        assert later[-1].accepted[0].ticks == t0 + 100_000 + 99_000
+        assert clock.wraps == 0
+
+
+@pytest.mark.parametrize("uptime_min", [5.0, 53.7, 60.0, 71.5])
+def test_clock_reboot_at_any_uptime_is_a_reboot(uptime_min):
+    clock = C.SampleClock(1e-6, resync_s=1.0)
+    t0 = int(uptime_min * 60e6) % 2**32
+    stream(clock, t0, 500, 0.0)
+    # 3 s later the board is back, stamping from 2.5 s after boot.
+    after = stream(clock, 2_500_000, 1200, 3.5)
+    names = [v.verdict for v in after]
+    adopted = names.index("reboot")
+    assert 990 <= adopted <= 1001 and "resync" not in names and "ok" in names
+    assert after[adopted].accepted[0].ticks == 2_500_000
+    assert all(v.verdict == "ok" for v in after[adopted + 1:])
+
+
+def test_clock_reboot_corroborated_by_system_time_needs_less_evidence():
+    clock = C.SampleClock(1e-6, resync_s=1.0)
+    stream(clock, 3_500_000_000, 500, 0.0)
+    clock.boot_hint = (2.4, 3.4)  # SYSTEM_TIME: 2.4 s since boot, received at 3.4 s
+    after = stream(clock, 2_500_000, 600, 3.5)
+    assert [v.verdict for v in after].index("reboot") < 300
+
+
+def test_clock_outage_on_the_same_timeline_is_a_gap():
+    clock = C.SampleClock(1e-6)
+    stream(clock, 0, 100, 0.0)
+    v = clock.classify(1_600_000, 1.6)
+    assert v.verdict == "gap" and v.gap_s == pytest.approx(1.501)
+    assert clock.classify(1_601_000, 1.601).verdict == "ok"
 
 
 def test_sequence_tracker_counts_loss_reorder_duplicates():
@@ -133,7 +231,39 @@ def test_codec_signing_rejects_unsigned_and_accepts_signed():
     assert len(msgs) == 1 and msgs[0].get_signed()
     wrong = MavCodec(SigningConfig(signing_key_from_text("other")))
     assert rx.parse(wrong.pack(mavlink.MAVLink_heartbeat_message(2, 12, 0, 0, 4, 3), 1, 2)) == []
-    assert rx.stats.unsigned_rejected == 2
+    assert rx.stats.bad_signature == 1
+    assert rx.parse(signed) == [] and rx.stats.replayed == 1  # the same frame again
+
+
+def _forged(frame: bytes, timestamp: int) -> bytes:
+    """``frame`` with its signing timestamp replaced (the signature no longer matches)."""
+    b = bytearray(frame)
+    b[-12:-6] = timestamp.to_bytes(6, "little")
+    return bytes(b)
+
+
+def test_codec_signing_lockout_replay_and_allow_unsigned():
+    key = signing_key_from_text("correct horse battery staple")
+    hb = mavlink.MAVLink_heartbeat_message(2, 12, 0, 0, 4, 3)
+    tx = MavCodec(SigningConfig(key))
+    rx = MavCodec(SigningConfig(key))
+    assert len(rx.parse(tx.pack(hb, 1, 1))) == 1
+    # A forged frame from the vehicle's (link, sysid, compid) with the largest timestamp
+    # and a bad signature must not lock the vehicle out.
+    assert rx.parse(_forged(tx.pack(hb, 1, 1), 2**48 - 1)) == []
+    assert rx.stats.bad_signature == 1
+    good = [tx.pack(hb, 1, 1) for _ in range(5)]
+    assert all(len(rx.parse(f)) == 1 for f in good)
+    # Replayed from another UDP peer: the signing state is the connection's, so the
+    # second parser (another peer of the same link) refuses it.
+    peer2 = MavCodec(SigningConfig(key), verifier=rx.verifier)
+    assert peer2.parse(good[-1]) == [] and peer2.stats.replayed == 1
+    # allow_unsigned lets unsigned frames through, never wrongly signed ones.
+    lax = MavCodec(SigningConfig(key, allow_unsigned=True))
+    assert len(lax.parse(_packet())) == 1 and lax.stats.unsigned_accepted == 1
+    other = MavCodec(SigningConfig(signing_key_from_text("other")))
+    assert lax.parse(other.pack(hb, 1, 1)) == [] and lax.stats.bad_signature == 1
+    assert lax.parse(_forged(tx.pack(hb, 1, 1), 2**48 - 1)) == []
 
 
 def test_signing_key_sources(tmp_path, monkeypatch):
@@ -241,3 +371,85 @@ def test_compare_finds_lag_and_scores():
     assert c.total_deg > 1.0  # scored at zero shift: the lag shows as error
     c2 = compare_series(t, lagged, t, ref, np.arange(-0.1, 0.1, 0.002), score_at_best=True)
     assert c2.total_deg < 0.2 and c2.heading_deg == pytest.approx(c2.total_deg, rel=1e-3)
+
+
+def test_kernel_filter_keeps_vehicles_and_heartbeats_and_samples_the_rest():
+    """The socket filter on a real UDP socket: the admitted vehicle's frames and anyone's
+    HEARTBEAT pass whole; other frames are dropped but for a 1/64 sample cut to 3 bytes."""
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 * 1024 * 1024)
+    rx.bind(("127.0.0.1", 0))
+    rx.setblocking(False)
+    kf = KernelFilter()
+    assert kf.attach(rx, {1: frozenset({1}), 5: None})
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    vehicle, other = mavlink.MAVLink(None, 1, 1), mavlink.MAVLink(None, 9, 1)
+    gimbal, any_comp = mavlink.MAVLink(None, 1, 154), mavlink.MAVLink(None, 5, 77)
+    imu = mavlink.MAVLink_raw_imu_message(1000, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+    sent = {"vehicle": imu.pack(vehicle), "heartbeat": _packet(mav=other),
+            "any_component": imu.pack(any_comp), "gimbal_heartbeat": _packet(mav=gimbal)}
+    for data in sent.values():
+        tx.sendto(data, rx.getsockname())
+    flood = imu.pack(other)
+    n = 6400
+    for i in range(n):  # half from another system, half from another component
+        tx.sendto(flood if i % 2 else imu.pack(gimbal), rx.getsockname())
+    time.sleep(0.1)
+    got = []
+    while True:
+        try:
+            got.append(rx.recv(65536))
+        except BlockingIOError:
+            break
+    kf.detach(rx)
+    rx.close()
+    tx.close()
+    whole = [g for g in got if len(g) > MARK_LEN]
+    marks = [g for g in got if len(g) == MARK_LEN]
+    assert whole == list(sent.values())
+    assert all(m == flood[:MARK_LEN] for m in marks)  # (the first 3 bytes are alike)
+    assert 0.5 * n / SAMPLE <= len(marks) <= 1.5 * n / SAMPLE
+
+
+@pytest.mark.parametrize("settings, message", [
+    ({"declination_deg": math.inf}, "finite"),
+    ({"declination_deg": math.nan}, "finite"),
+    ({"declination_deg": 200.0}, "declination"),
+    ({"estimators": ["eskf:max_dt=-1"]}, "max_dt"),
+    ({"estimators": ["mahony:declination=inf"]}, "declination"),
+    ({"imu_rate": 0.0}, "imu_rate"),
+    ({"out_rate": math.inf}, "out_rate"),
+    ({"max_peers": 0}, "max_peers"),
+    ({"vehicles": [0]}, "system id"),
+    ({"vehicles": ["1"]}, "vehicles"),
+    ({"clock_resync_s": -1.0}, "clock_resync_s"),
+    ({"gyro_range_dps": math.nan}, "gyro_range_dps"),
+    ({"truth_source": "1-1"}, "SYSID:COMPID"),
+    ({"jump_s": "fast"}, "jump_s"),
+])
+def test_config_rejects_every_unusable_setting(settings, message):
+    with pytest.raises(ValueError, match=message):
+        BridgeConfig(**settings).validate()
+
+
+def test_admission_budgets_each_sender_and_lets_only_heartbeats_of_strangers_in():
+    gate = Admission(rate=100.0, burst=10.0)
+    vehicle, other_comp = mavlink.MAVLink(None, 1, 1), mavlink.MAVLink(None, 1, 2)
+    stranger = mavlink.MAVLink(None, 9, 1)
+    imu = mavlink.MAVLink_raw_imu_message(1000, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+    assert gate(imu.pack(stranger))  # learning: nobody admitted yet, all within budget
+    gate.admit_vehicle(1)
+    assert not gate(imu.pack(stranger)) and gate.stats.not_vehicle == 1
+    assert gate(_packet(mav=stranger))  # a stranger's HEARTBEAT
+    # Another component of the vehicle floods: it runs out of budget, the vehicle not.
+    flood = [gate(imu.pack(other_comp)) for _ in range(100)]
+    assert sum(flood) <= 12 and gate.stats.over_budget >= 88
+    assert all(gate(imu.pack(vehicle)) for _ in range(10))
+    # Once the vehicle's autopilot component is known, other components get heartbeats
+    # through only.
+    gate.admit_vehicle(1, frozenset({1}))
+    refused = gate.stats.not_vehicle
+    assert not gate(imu.pack(other_comp)) and gate.stats.not_vehicle == refused + 1
+    time.sleep(0.05)  # the vehicle's bucket refills (100/s)
+    assert gate(_packet(mav=other_comp)) and gate(imu.pack(vehicle))
+    assert gate(b"\x01") and gate.stats.junk_over_budget == 0  # junk: parsed and counted

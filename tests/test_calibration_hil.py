@@ -138,6 +138,7 @@ async def stream_through_bridge(cfg: EmulatorConfig, calibration: str) -> UdpLis
     listener = UdpListener()
     out_port = await listener.start()
     async with running_bridge(estimators=["eskf"], out_rate=50.0, imu_rate=cfg.imu_rate_hz,
+                              max_source_rate=1e7,  # --fast: faster than real time
                               declination_deg=emulator_declination_deg(),
                               outs=[f"udpout:127.0.0.1:{out_port}"],
                               calibration=calibration) as bridge:

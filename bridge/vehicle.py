@@ -1,0 +1,113 @@
+"""What the bridge keeps about one vehicle it serves, and who may speak for it.
+
+The bridge serves only admitted vehicles: the system ids given with ``--vehicle``, or
+else the first autopilot heard (a HEARTBEAT whose autopilot is not
+MAV_AUTOPILOT_INVALID). Before any autopilot is heard, the first system id that sends
+an IMU stream is admitted provisionally, and gives way to the first real autopilot
+heartbeat from another system id (a bare sensor stream cannot hold the slot against
+an autopilot). Everything else is refused and counted, so spoofed system ids cost no
+state.
+
+Per vehicle, exactly one IMU stream is the primary source (estimated, published): the
+first one heard from the vehicle's autopilot component (with ``imu_id``, only that IMU
+index), replaced by a stream of the requested message type when one appears, or by
+another stream once the primary has been silent for ``source_timeout_s``. Other IMU
+streams of the vehicle are refused (``not_primary``): two IMUs interleaved into one
+estimate would make it jump between them.
+
+References for the live comparison count only from the vehicle's autopilot component
+(truth from the configured source, by default that same component): an attitude
+injected by another sender must not decide what the bridge reports as its error.
+
+The object is also the home of later per-vehicle inputs (velocity, parameters).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from .compare import References
+from .ingest import SourceKey
+from .sequence import SequenceTracker
+
+#: Per-vehicle sequence trackers (one per sending component) kept at most.
+MAX_COMPONENTS = 16
+CONFIGURED, HEARTBEAT, PROVISIONAL = "configured", "heartbeat", "imu"
+
+#: Counters of what one vehicle's traffic had refused.
+REFUSALS = ("not_primary", "other_component", "refs_refused", "components_untracked")
+
+
+@dataclass
+class Vehicle:
+    """State of one admitted vehicle."""
+
+    sysid: int
+    admitted_by: str = CONFIGURED
+    autopilot_compid: int | None = None
+    heartbeats: int = 0
+    last_heartbeat: float = 0.0  # monotonic
+    link: Any = None  # where it talks from: the link and address of its last message
+    address: tuple | None = None
+    primary: SourceKey | None = None
+    primary_heard: float = 0.0  # monotonic time of the primary's last sample
+    source_switches: int = 0
+    last_imu: float = 0.0  # monotonic time of the last accepted IMU sample
+    last_heard: float = 0.0  # monotonic time of any admitted message
+    stream_requests: int = 0
+    next_request: float = 0.0
+    request_backoff: float = 2.0
+    command_acks: int = 0
+    boot_hint: tuple[float, float] | None = None  # SYSTEM_TIME: (board s, perf_counter)
+    refs: References | None = None
+    sequences: dict[int, SequenceTracker] = field(default_factory=dict)
+    next_mqtt_t: dict[Any, float] = field(default_factory=dict)
+    samples_at_last_status: int = 0
+    refused: dict[str, int] = field(default_factory=lambda: dict.fromkeys(REFUSALS, 0))
+
+    def references(self) -> References:
+        """The comparison references, created on first use (they are the bulk of the
+        per-vehicle memory)."""
+        if self.refs is None:
+            self.refs = References()
+        return self.refs
+
+    def observe_sequence(self, compid: int, seq: int) -> None:
+        tracker = self.sequences.get(compid)
+        if tracker is None:
+            if len(self.sequences) >= MAX_COMPONENTS:
+                self.refused["components_untracked"] += 1
+                return
+            tracker = self.sequences[compid] = SequenceTracker()
+        tracker.observe(seq)
+
+    def reference_compid(self) -> int | None:
+        """The component whose attitude counts as the vehicle's own."""
+        if self.autopilot_compid is not None:
+            return self.autopilot_compid
+        return self.primary.compid if self.primary is not None else None
+
+    def choose_source(self, key: SourceKey, now: float, imu_id: int | None,
+                      preferred_msg: int, source_timeout_s: float) -> tuple[bool, bool]:
+        """(use this sample, it starts a new primary) for an IMU sample of ``key``."""
+        if self.autopilot_compid is not None and key.compid != self.autopilot_compid:
+            self.refused["other_component"] += 1
+            return False, False
+        if imu_id is not None and key.imu != imu_id:
+            self.refused["not_primary"] += 1
+            return False, False
+        primary = self.primary
+        if primary == key:
+            self.primary_heard = now
+            return True, False
+        replace = primary is None or now - self.primary_heard > source_timeout_s or (
+            key.msg == preferred_msg and primary.msg != preferred_msg)
+        if not replace:
+            self.refused["not_primary"] += 1
+            return False, False
+        if primary is not None:
+            self.source_switches += 1
+        self.primary = key
+        self.primary_heard = now
+        return True, True

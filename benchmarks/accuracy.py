@@ -155,9 +155,9 @@ def px4_trials(folder: Path) -> list[Trial]:
         dec = resolve(rec).rad
         quad = {"drag": MULTIROTOR_DRAG_PER_S}
         runs = [Run("aided", v.vel, np.nan_to_num(v.age), quad), Run("unaided", params=quad)]
-        out.append(Trial(f.stem.replace("sih_", "px4").replace("aggressive", "agg"), "px4", rec.gyr, rec.acc, rec.mag,
-                         rec.dt, rec.rate_hz, "NED", truth, scored, dec, runs,
-                         q0=truth[first], autopilot=autopilot))
+        name = f.stem.replace("sih_", "px4").replace("aggressive", "agg")
+        out.append(Trial(name, "px4", rec.gyr, rec.acc, rec.mag, rec.dt, rec.rate_hz, "NED",
+                         truth, scored, dec, runs, q0=truth[first], autopilot=autopilot))
     return out
 
 

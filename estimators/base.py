@@ -53,11 +53,11 @@ class CommonParams:
 def _check_common(p: CommonParams) -> None:
     """ValueError for common parameters no estimator can work with (an infinite
     declination makes NaN quaternions, a negative max_dt skips every sample)."""
-    for name in ("acc_range", "gyr_range", "max_dt", "declination"):
+    for name in ("acc_range", "gyr_range", "max_dt", "declination", "aid_timeout"):
         value = float(getattr(p, name))
         if not math.isfinite(value):
             raise ValueError(f"parameter {name!r} must be finite, got {value!r}")
-    for name in ("acc_range", "gyr_range", "max_dt"):
+    for name in ("acc_range", "gyr_range", "max_dt", "aid_timeout"):
         if not float(getattr(p, name)) > 0.0:
             raise ValueError(f"parameter {name!r} must be positive, got {getattr(p, name)!r}")
     if abs(float(p.declination)) > math.pi:

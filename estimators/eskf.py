@@ -92,7 +92,7 @@ class EskfParams(CommonParams):
                                        "integrated, so the filter's cost and behaviour do "
                                        "not depend on the IMU rate")
     gravity: float = param(G, "gravity [m/s^2]")
-    gyro_noise: float = param(0.005, "attitude random walk [rad/sqrt(s)]: gyro noise plus "
+    gyro_noise: float = param(0.012, "attitude random walk [rad/sqrt(s)]: gyro noise plus "
                                      "its unmodelled errors (scale, misalignment)")
     bias_rw: float = param(1e-4, "gyro-bias random walk [rad/s/sqrt(s)]")
     bias_init: float = param(0.5 * _DEG, "initial gyro-bias standard deviation [rad/s]")
@@ -100,10 +100,10 @@ class EskfParams(CommonParams):
                                          "MPU6050's zero-rate offset range)")
     tilt_init: float = param(5.0 * _DEG, "initial tilt standard deviation [rad]")
     heading_init: float = param(10.0 * _DEG, "initial heading standard deviation [rad]")
-    velocity_rw: float = param(0.05, "velocity random walk [m/s/sqrt(s)]: how fast the "
+    velocity_rw: float = param(0.1, "velocity random walk [m/s/sqrt(s)]: how fast the "
                                      "velocity may drift from what the accelerometer says "
                                      "(accelerometer noise, scale errors, lever arm)")
-    velocity_prior: float = param(0.1, "bounded-velocity pseudo-measurement v ≈ 0, noise "
+    velocity_prior: float = param(0.2, "bounded-velocity pseudo-measurement v ≈ 0, noise "
                                        "density [m/s·sqrt(s)] (no aiding, no drag model)")
     velocity_reset_time: float = param(3.0, "velocity re-anchored after this long [s] of "
                                             "rejected velocity information")
@@ -114,7 +114,7 @@ class EskfParams(CommonParams):
     drag_noise: float = param(0.3, "drag measurement noise density [m/s^2·sqrt(s)]")
     vertical_velocity_prior: float = param(1.0, "multirotor: vertical velocity ≈ 0 "
                                                 "pseudo-measurement density [m/s·sqrt(s)]")
-    mag_noise: float = param(0.15, "magnetometer heading noise density [rad·sqrt(s)]")
+    mag_noise: float = param(0.25, "magnetometer heading noise density [rad·sqrt(s)]")
     mag_norm_th: float = param(0.1, "magnetic disturbance: relative field-norm deviation")
     mag_dip_th: float = param(10.0 * _DEG, "magnetic disturbance: dip-angle deviation [rad]")
     mag_ref_time: float = param(5.0, "a field consistent this long [s] becomes the first "
@@ -759,6 +759,11 @@ class Eskf(Estimator):
     def velocity(self) -> np.ndarray:
         """The filter's velocity [m/s], internal frame (magnetic NED)."""
         return self._state[_V:_V + 3].copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Covariance of the error state [δθ (world), δb, δv, δμ], 10×10."""
+        return self._state[_P:_P + _NX * _NX].reshape(_NX, _NX).copy()
 
     @property
     def drag_coefficient(self) -> float:

@@ -100,14 +100,16 @@ class EskfParams(CommonParams):
                                          "MPU6050's zero-rate offset range)")
     tilt_init: float = param(5.0 * _DEG, "initial tilt standard deviation [rad]")
     heading_init: float = param(10.0 * _DEG, "initial heading standard deviation [rad]")
-    velocity_rw: float = param(0.1, "velocity random walk [m/s/sqrt(s)]: how fast the "
+    velocity_rw: float = param(0.05, "velocity random walk [m/s/sqrt(s)]: how fast the "
                                      "velocity may drift from what the accelerometer says "
                                      "(accelerometer noise, scale errors, lever arm)")
     velocity_prior: float = param(0.2, "bounded-velocity pseudo-measurement v ≈ 0, noise "
                                        "density [m/s·sqrt(s)] (no aiding, no drag model)")
     velocity_reset_time: float = param(3.0, "velocity re-anchored after this long [s] of "
                                             "rejected velocity information")
-    vel_aid_noise: float = param(0.1, "velocity aiding measurement noise [m/s]")
+    vel_aid_noise: float = param(0.4, "velocity aiding measurement noise [m/s] (GPS or the "
+                                      "autopilot's estimate: their errors are correlated "
+                                      "over seconds, so more than the white noise)")
     drag: float = param(0.0, "multirotor rotor-drag model: initial drag coefficient "
                              "μ [1/s] (f_xy = −μ·v_body,xy); 0 = not a multirotor")
     drag_sigma_init: float = param(0.5, "initial standard deviation of μ [1/s]")

@@ -105,6 +105,8 @@ class EskfParams(CommonParams):
                                      "(accelerometer noise, scale errors, lever arm)")
     velocity_prior: float = param(0.2, "bounded-velocity pseudo-measurement v ≈ 0, noise "
                                        "density [m/s·sqrt(s)] (no aiding, no drag model)")
+    velocity_scale: float = param(math.inf, "bounded-velocity prior: speeds well above this "
+                                            "[m/s] weaken it (noise × (1 + |v|²/scale²))")
     velocity_reset_time: float = param(3.0, "velocity re-anchored after this long [s] of "
                                             "rejected velocity information")
     vel_aid_noise: float = param(0.4, "velocity aiding measurement noise [m/s] (GPS or the "
@@ -121,6 +123,8 @@ class EskfParams(CommonParams):
     mag_dip_th: float = param(10.0 * _DEG, "magnetic disturbance: dip-angle deviation [rad]")
     mag_ref_time: float = param(5.0, "a field consistent this long [s] becomes the first "
                                      "reference")
+    mag_provisional_time: float = param(0.5, "before that, a field consistent this long [s] "
+                                             "is a provisional reference")
     mag_new_time: float = param(20.0, "a disturbed but consistent field becomes the new "
                                       "reference after this long [s]")
     mag_reset_time: float = param(5.0, "an undisturbed field whose heading innovations are "
@@ -134,27 +138,36 @@ class EskfParams(CommonParams):
     rest_time: float = param(1.5, "rest: conditions hold this long [s]")
     rest_bias_th: float = param(2.0 * _DEG, "rest: low-passed gyro within this of the bias "
                                             "estimate, per axis [rad/s] (VQF's bias clip: a "
-                                            "steady turn is not rest)")
+                                            "steady turn is not rest), or within bias_max "
+                                            "while the magnetometer's direction is steady")
+    rest_mag_th: float = param(0.5 * _DEG, "rest: the magnetometer's direction is steady "
+                                           "within this of its low-pass [rad]")
     rest_tau: float = param(0.5, "time constant [s] of the rest-detection low-passes")
     rest_noise: float = param(0.03 * _DEG, "rest: gyro-bias measurement noise density "
                                            "[rad/s·sqrt(s)]")
+    rest_gravity_noise: float = param(0.2, "rest: the mean specific force is gravity, noise "
+                                           "density [m/s^2·sqrt(s)]")
+    rest_prefilter_tau: float = param(0.05, "rest: time constant [s] of the pre-filter "
+                                            "(attenuates 70 Hz vibration 20×)")
 
 
 _PARAM_FIELDS = (
     "update_period", "gravity", "gyro_noise", "bias_rw", "bias_init", "bias_max",
-    "tilt_init", "heading_init", "velocity_rw", "velocity_prior", "velocity_reset_time",
+    "tilt_init", "heading_init", "velocity_rw", "velocity_prior", "velocity_scale",
+    "velocity_reset_time",
     "vel_aid_noise", "drag", "drag_sigma_init", "drag_noise", "vertical_velocity_prior",
-    "mag_noise", "mag_norm_th", "mag_dip_th", "mag_ref_time", "mag_new_time",
-    "mag_reset_time",
+    "mag_noise", "mag_norm_th", "mag_dip_th", "mag_ref_time", "mag_provisional_time",
+    "mag_new_time", "mag_reset_time",
     "mag_ref_tau", "rest_gyr_th", "rest_acc_th", "rest_time", "rest_tau", "rest_noise",
-    "rest_bias_th", "aid_timeout",
+    "rest_gravity_noise", "rest_prefilter_tau", "rest_bias_th", "rest_mag_th", "aid_timeout",
 )
 (_P_PERIOD, _P_GRAV, _P_GYR_N, _P_B_RW, _P_B_INIT, _P_B_MAX, _P_TILT0, _P_HEAD0,
- _P_V_RW, _P_V_PRIOR, _P_V_RESET, _P_AID_N, _P_DRAG, _P_DRAG0, _P_DRAG_N, _P_VZ_PRIOR,
- _P_MAG_N, _P_MAG_NORM, _P_MAG_DIP, _P_MAG_REF_T, _P_MAG_NEW_T, _P_MAG_RESET,
+ _P_V_RW, _P_V_PRIOR, _P_V_SCALE, _P_V_RESET, _P_AID_N, _P_DRAG, _P_DRAG0, _P_DRAG_N, _P_VZ_PRIOR,
+ _P_MAG_N, _P_MAG_NORM, _P_MAG_DIP, _P_MAG_REF_T, _P_MAG_PROV_T, _P_MAG_NEW_T, _P_MAG_RESET,
  _P_MAG_REF_TAU,
  _P_REST_GYR, _P_REST_ACC, _P_REST_T, _P_REST_TAU, _P_REST_N,
- _P_REST_BIAS, _P_AID_TIMEOUT) = range(len(_PARAM_FIELDS))
+ _P_REST_G_N, _P_REST_PRE_TAU, _P_REST_BIAS, _P_REST_MAG,
+ _P_AID_TIMEOUT) = range(len(_PARAM_FIELDS))
 
 # --- private state layout -------------------------------------------------------------
 def _layout(*sizes: int) -> tuple[int, ...]:
@@ -170,18 +183,23 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _MUS,  # drag coefficient μ [1/s]
  _P,  # covariance of the error state, row-major _NX × _NX
  _ACC_T,  # time integrated since the last Kalman update [s]
- _ACC_N,  # usable accelerometer samples in that time
+ _FB_T,  # the part of it covered by usable accelerometer samples [s]
  _DV,  # 3: ∫R·f dt over that time (world)
  _FB,  # 3: ∫f dt (body, as measured), for the drag measurement
  _FW,  # 3: the last sample's specific force in the world frame (trapezoidal integration)
  _FW_OK,  # 1 when _FW holds one
- _GLP,  # 3: gyro low-pass (rest detection; the bias it measures)
- _ALP,  # 3: accelerometer low-pass (rest detection)
+ _GPF,  # 3: gyro pre-filter (rest detection: vibration out)
+ _GLP,  # 3: its low-pass (rest detection; the bias it measures)
+ _APF,  # 3: accelerometer pre-filter
+ _ALP,  # 3: its low-pass
+ _MPF,  # 3: magnetometer direction pre-filter
+ _MLP,  # 3: its low-pass
+ _MAG_STEADY,  # 1 while the magnetometer's direction in the body is steady
  _REST_T,  # how long rest conditions have held [s]
  _LP_OK,  # 1 once the rest low-passes are seeded
  _MN_REF, _MD_REF, _REF_OK,  # field norm/dip reference, 1 once set
  _MN_C, _MD_C, _CAND_T,  # candidate field norm/dip, how long it has held [s]
- _V_REJ_T,  # velocity information rejected for this long [s]
+ _V_OK_T,  # RUN_T when velocity information was last accepted
  _AID_T,  # RUN_T of the last velocity aiding measurement (-inf: none)
  _PEND,  # 3: velocity aiding measurement waiting for the next update (NaN: none)
  _PEND_AGE,  # its age at the update [s]
@@ -195,8 +213,8 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _PHT,  # scratch: P·Hᵀ (_NX × 3)
  _K,  # scratch: gain (_NX × 3)
  _X,  # scratch: error-state correction (_NX)
- _STATE_SIZE) = _layout(3, 1, _NX * _NX, 1, 1, 3, 3, 3, 1, 3, 3, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 3,
-                        1, 3, 1, 3, 1, 1, 1, 3 * _NX, 3 * _NX, 3 * _NX, _NX)
+ _STATE_SIZE) = _layout(3, 1, _NX * _NX, 1, 1, 3, 3, 3, 1, 3, 3, 3, 3, 3, 3, 1, 1, 1, 1, 1, 1, 1, 1,
+                        1, 1, 1, 3, 1, 3, 1, 3, 1, 1, 1, 3 * _NX, 3 * _NX, 3 * _NX, _NX)
 
 
 @_core.kernel(inline="always")
@@ -390,7 +408,38 @@ def _reset_velocity(state: np.ndarray, vx: float, vy: float, vz: float, sigma: f
             state[_pi(_VE + i, j)] = 0.0
             state[_pi(j, _VE + i)] = 0.0
         state[_pi(_VE + i, _VE + i)] = sigma * sigma
-    state[_V_REJ_T] = 0.0
+    state[_V_OK_T] = state[_core.RUN_T]
+
+
+@_core.kernel
+def _recover_velocity(state: np.ndarray, params: np.ndarray, r: tuple, aided: bool) -> None:
+    """Velocity information refused for velocity_reset_time: the filter is inconsistent
+    (a wrong start, a vehicle that left the bounded-velocity world, a GPS that jumped), so
+    the velocity is re-anchored to what the information says and the tilt's variance is
+    raised by its initial value, so that the information is taken again and can correct
+    the tilt instead of being refused for ever."""
+    if aided and (math.isfinite(state[_PEND]) or math.isfinite(state[_PEND + 1])
+                  or math.isfinite(state[_PEND + 2])):
+        vx = state[_PEND] if math.isfinite(state[_PEND]) else state[_V]
+        vy = state[_PEND + 1] if math.isfinite(state[_PEND + 1]) else state[_V + 1]
+        vz = state[_PEND + 2] if math.isfinite(state[_PEND + 2]) else state[_V + 2]
+        sigma = params[_P_AID_N]
+    elif params[_P_DRAG] > 0.0 and state[_MUS] > 0.0 and state[_FB_T] > 0.0:
+        # the body velocity the drag reading implies (vertical kept), back to the world
+        ux = -state[_FB] / state[_FB_T] / state[_MUS]
+        uy = -state[_FB + 1] / state[_FB_T] / state[_MUS]
+        uz = r[2] * state[_V] + r[5] * state[_V + 1] + r[8] * state[_V + 2]
+        vx = r[0] * ux + r[1] * uy + r[2] * uz
+        vy = r[3] * ux + r[4] * uy + r[5] * uz
+        vz = r[6] * ux + r[7] * uy + r[8] * uz
+        sigma = params[_P_VZ_PRIOR]
+    else:
+        vx = vy = vz = 0.0
+        sigma = params[_P_V_PRIOR]
+    _reset_velocity(state, vx, vy, vz, sigma)
+    tilt = params[_P_TILT0] ** 2
+    state[_pi(_TH, _TH)] += tilt
+    state[_pi(_TH + 1, _TH + 1)] += tilt
 
 
 @_core.kernel
@@ -421,17 +470,7 @@ def _velocity_aiding(state: np.ndarray, params: np.ndarray, T: float, r: tuple) 
     if m == 0:
         return False
     rn = params[_P_AID_N] ** 2
-    ok = _kalman_update(state, params, m, nu0, nu1, nu2, rn, rn, rn, _GATE[m])
-    if ok:
-        state[_V_REJ_T] = 0.0
-    else:
-        state[_V_REJ_T] += T
-        if state[_V_REJ_T] > params[_P_V_RESET]:
-            vx = state[_PEND] if math.isfinite(state[_PEND]) else state[_V]
-            vy = state[_PEND + 1] if math.isfinite(state[_PEND + 1]) else state[_V + 1]
-            vz = state[_PEND + 2] if math.isfinite(state[_PEND + 2]) else state[_V + 2]
-            _reset_velocity(state, vx, vy, vz, params[_P_AID_N])
-    return ok
+    return _kalman_update(state, params, m, nu0, nu1, nu2, rn, rn, rn, _GATE[m])
 
 
 @_core.kernel
@@ -458,7 +497,7 @@ def _drag_update(state: np.ndarray, params: np.ndarray, T: float, r: tuple) -> b
         state[base + _VE + 1] = -mu * c1
         state[base + _VE + 2] = -mu * c2
         state[base + _MU] = -(ux if row == 0 else uy)
-    fx, fy = state[_FB] / T, state[_FB + 1] / T
+    fx, fy = state[_FB] / state[_FB_T], state[_FB + 1] / state[_FB_T]
     rn = params[_P_DRAG_N] ** 2 / T
     return _kalman_update(state, params, 2, fx + mu * ux, fy + mu * uy, 0.0, rn, rn, 0.0,
                           _GATE[2])
@@ -476,8 +515,35 @@ def _velocity_prior(state: np.ndarray, params: np.ndarray, T: float, sigma: floa
     if axes == 1:
         return _kalman_update(state, params, 1, -state[_V + 2], 0.0, 0.0, rn, 0.0, 0.0,
                               _GATE[1])
+    scale = params[_P_V_SCALE]
+    v2 = state[_V] ** 2 + state[_V + 1] ** 2 + state[_V + 2] ** 2
+    rn *= 1.0 + v2 / (scale * scale)
     return _kalman_update(state, params, 3, -state[_V], -state[_V + 1], -state[_V + 2],
                           rn, rn, rn, _GATE[3])
+
+
+@_core.kernel(inline="always")
+def _mag_steadiness(state: np.ndarray, params: np.ndarray, mx: float, my: float, mz: float,
+                    mag_ok: bool, dt: float) -> None:
+    """Whether the field's direction in the body has stayed put (pre-filtered, against
+    its low-pass, like the rest test): the one sensor that sees a turn about the
+    vertical without trusting the gyro."""
+    if not mag_ok:
+        state[_MAG_STEADY] = 0.0
+        return
+    n = math.sqrt(mx * mx + my * my + mz * mz)
+    ux, uy, uz = mx / n, my / n, mz / n
+    k = 1.0 - math.exp(-dt / params[_P_REST_TAU])
+    kp = 1.0 - math.exp(-dt / params[_P_REST_PRE_TAU])
+    if state[_MLP] == 0.0 and state[_MLP + 1] == 0.0 and state[_MLP + 2] == 0.0:
+        for j in range(3):
+            state[_MPF + j] = state[_MLP + j] = (ux, uy, uz)[j]
+    d2 = 0.0
+    for j in range(3):
+        state[_MPF + j] += kp * ((ux, uy, uz)[j] - state[_MPF + j])
+        state[_MLP + j] += k * (state[_MPF + j] - state[_MLP + j])
+        d2 += (state[_MPF + j] - state[_MLP + j]) ** 2
+    state[_MAG_STEADY] = 1.0 if d2 < params[_P_REST_MAG] ** 2 else 0.0
 
 
 @_core.kernel
@@ -507,11 +573,23 @@ def _mag_disturbed(state: np.ndarray, params: np.ndarray, norm: float, dip: floa
         state[_MD_C] += kc * (dip - state[_MD_C])
     else:
         state[_MN_C], state[_MD_C], state[_CAND_T] = norm, dip, 0.0
-    if state[_REF_OK] <= 0.0:
+    if state[_REF_OK] < 1.0:
         if state[_CAND_T] >= params[_P_MAG_REF_T]:
             state[_MN_REF], state[_MD_REF] = state[_MN_C], state[_MD_C]
             state[_REF_OK] = 1.0
-        return False
+            return False
+        # Until then, a field that has been consistent for a moment is a provisional
+        # reference: a magnet near the vehicle in its first seconds is a disturbance too.
+        if state[_REF_OK] <= 0.0 and state[_CAND_T] >= params[_P_MAG_PROV_T]:
+            state[_MN_REF], state[_MD_REF] = state[_MN_C], state[_MD_C]
+            state[_REF_OK] = 0.5
+        if state[_REF_OK] <= 0.0:
+            return False
+        disturbed = abs(norm - state[_MN_REF]) > nth * state[_MN_REF] or \
+            abs(dip - state[_MD_REF]) > dth
+        if not disturbed:
+            state[_MN_REF], state[_MD_REF] = state[_MN_C], state[_MD_C]
+        return disturbed
     disturbed = abs(norm - state[_MN_REF]) > nth * state[_MN_REF] or \
         abs(dip - state[_MD_REF]) > dth
     if disturbed and state[_CAND_T] >= params[_P_MAG_NEW_T]:
@@ -585,27 +663,90 @@ def _reset_heading(state: np.ndarray, params: np.ndarray, nu: float) -> None:
 def _rest_detection(state: np.ndarray, params: np.ndarray, gx: float, gy: float,
                     gz: float, ax: float, ay: float, az: float, acc_ok: bool,
                     dt: float) -> None:
+    """VQF's rest test, on pre-filtered samples: motor vibration (tens of Hz) is not
+    motion of the vehicle and must not hide its rest."""
     k = 1.0 - math.exp(-dt / params[_P_REST_TAU])
+    kp = 1.0 - math.exp(-dt / params[_P_REST_PRE_TAU])
     if state[_LP_OK] <= 0.0:
-        state[_GLP], state[_GLP + 1], state[_GLP + 2] = gx, gy, gz
-        state[_ALP], state[_ALP + 1], state[_ALP + 2] = ax, ay, az
-        state[_LP_OK] = 1.0
-    state[_GLP] += k * (gx - state[_GLP])
-    state[_GLP + 1] += k * (gy - state[_GLP + 1])
-    state[_GLP + 2] += k * (gz - state[_GLP + 2])
-    dg = (gx - state[_GLP]) ** 2 + (gy - state[_GLP + 1]) ** 2 + (gz - state[_GLP + 2]) ** 2
-    lim = params[_P_REST_BIAS]
-    steady = acc_ok and dg < params[_P_REST_GYR] ** 2 \
+        for j in range(3):
+            g = (gx, gy, gz)[j]
+            state[_GPF + j] = state[_GLP + j] = g
+        if acc_ok:
+            for j in range(3):
+                a = (ax, ay, az)[j]
+                state[_APF + j] = state[_ALP + j] = a
+            state[_LP_OK] = 1.0
+    dg = 0.0
+    for j in range(3):
+        state[_GPF + j] += kp * ((gx, gy, gz)[j] - state[_GPF + j])
+        state[_GLP + j] += k * (state[_GPF + j] - state[_GLP + j])
+        dg += (state[_GPF + j] - state[_GLP + j]) ** 2
+    # The low-passed gyro must be near the bias estimate (VQF's bias clip: a steady slow
+    # turn is not rest), unless the magnetometer shows the body is not turning: then
+    # any offset an uncalibrated gyro may have (bias_max) is taken for what it is.
+    lim = params[_P_B_MAX] if state[_MAG_STEADY] > 0.0 else params[_P_REST_BIAS]
+    steady = acc_ok and state[_LP_OK] > 0.0 and dg < params[_P_REST_GYR] ** 2 \
         and abs(state[_GLP] - state[_core.B0]) < lim \
         and abs(state[_GLP + 1] - state[_core.B0 + 1]) < lim \
         and abs(state[_GLP + 2] - state[_core.B0 + 2]) < lim
     if acc_ok:
-        state[_ALP] += k * (ax - state[_ALP])
-        state[_ALP + 1] += k * (ay - state[_ALP + 1])
-        state[_ALP + 2] += k * (az - state[_ALP + 2])
-        da = (ax - state[_ALP]) ** 2 + (ay - state[_ALP + 1]) ** 2 + (az - state[_ALP + 2]) ** 2
+        da = 0.0
+        for j in range(3):
+            state[_APF + j] += kp * ((ax, ay, az)[j] - state[_APF + j])
+            state[_ALP + j] += k * (state[_APF + j] - state[_ALP + j])
+            da += (state[_APF + j] - state[_ALP + j]) ** 2
         steady = steady and da < params[_P_REST_ACC] ** 2
     state[_REST_T] = state[_REST_T] + dt if steady else 0.0
+
+
+@_core.kernel(inline="always")
+def _mag_steadiness(state: np.ndarray, params: np.ndarray, mx: float, my: float, mz: float,
+                    mag_ok: bool, dt: float) -> None:
+    """Whether the field's direction in the body has stayed put (pre-filtered, against
+    its low-pass, like the rest test): the one sensor that sees a turn about the
+    vertical without trusting the gyro."""
+    if not mag_ok:
+        state[_MAG_STEADY] = 0.0
+        return
+    n = math.sqrt(mx * mx + my * my + mz * mz)
+    ux, uy, uz = mx / n, my / n, mz / n
+    k = 1.0 - math.exp(-dt / params[_P_REST_TAU])
+    kp = 1.0 - math.exp(-dt / params[_P_REST_PRE_TAU])
+    if state[_MLP] == 0.0 and state[_MLP + 1] == 0.0 and state[_MLP + 2] == 0.0:
+        for j in range(3):
+            state[_MPF + j] = state[_MLP + j] = (ux, uy, uz)[j]
+    d2 = 0.0
+    for j in range(3):
+        state[_MPF + j] += kp * ((ux, uy, uz)[j] - state[_MPF + j])
+        state[_MLP + j] += k * (state[_MPF + j] - state[_MLP + j])
+        d2 += (state[_MPF + j] - state[_MLP + j]) ** 2
+    state[_MAG_STEADY] = 1.0 if d2 < params[_P_REST_MAG] ** 2 else 0.0
+
+
+@_core.kernel
+def _rest_update(state: np.ndarray, params: np.ndarray, T: float) -> None:
+    """At rest the low-passed gyro is the bias, and the vehicle is not accelerating, so
+    the mean specific force is gravity: a tilt measurement (rest holds only while the
+    specific force is steady, and a multirotor's changes with its speed through rotor
+    drag, so a steady cruise qualifies too — it is not accelerating either). Not a
+    zero-velocity update: that cruise is not standing still."""
+    _clear_rows(state, 3)
+    for i in range(3):
+        state[_H + i * _NX + _BI + i] = 1.0
+    rn = params[_P_REST_N] ** 2 / T
+    _kalman_update(state, params, 3, state[_GLP] - state[_core.B0],
+                   state[_GLP + 1] - state[_core.B0 + 1], state[_GLP + 2] - state[_core.B0 + 2],
+                   rn, rn, rn, 0.0)
+    # world-frame mean specific force: R̂·f̄ = (g·δθ_y, −g·δθ_x, −g) for a tilt error δθ
+    ft = state[_FB_T]
+    fx, fy, fz = state[_FB] / ft, state[_FB + 1] / ft, state[_FB + 2] / ft
+    wx, wy, _ = _core.body_to_world(state, fx, fy, fz)
+    grav = params[_P_GRAV]
+    _clear_rows(state, 2)
+    state[_H + _TH + 1] = grav
+    state[_H + _NX + _TH] = -grav
+    rn = params[_P_REST_G_N] ** 2 / T
+    _kalman_update(state, params, 2, wx, wy, 0.0, rn, rn, 0.0, _GATE[2])
 
 
 @_core.kernel
@@ -614,37 +755,43 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
     _predict_covariance(state, params, T)
     r = _rotation(state)
     state[_core.ACC_REJ] = 0.0
-    if state[_ACC_N] <= 0.0:
+    if state[_FB_T] <= 0.0:
         # Nothing measured the specific force: the velocity says nothing about the tilt.
         _reset_velocity(state, state[_V], state[_V + 1], state[_V + 2],
                         math.sqrt(max(state[_pi(_VE, _VE)], 0.0)) + params[_P_V_PRIOR])
         state[_PEND] = state[_PEND + 1] = state[_PEND + 2] = math.nan
         state[_core.ACC_REJ] = 1.0
-    elif math.isfinite(state[_PEND]) or math.isfinite(state[_PEND + 1]) or \
-            math.isfinite(state[_PEND + 2]):
-        if not _velocity_aiding(state, params, T, r):
-            state[_core.ACC_REJ] = 1.0
-        state[_PEND] = state[_PEND + 1] = state[_PEND + 2] = math.nan
-        r = _rotation(state)
-    aided = state[_core.RUN_T] - state[_AID_T] <= params[_P_AID_TIMEOUT]
-    if state[_REST_T] >= params[_P_REST_T]:
+    now = state[_core.RUN_T]
+    aided = now - state[_AID_T] <= params[_P_AID_TIMEOUT]
+    at_rest = state[_REST_T] >= params[_P_REST_T]
+    if at_rest:
         _rest_update(state, params, T)
         r = _rotation(state)
-    if state[_ACC_N] <= 0.0:
-        pass
-    elif params[_P_DRAG] > 0.0:
-        if not _drag_update(state, params, T, r):
-            state[_core.ACC_REJ] = 1.0
-        if not aided:
-            _velocity_prior(state, params, T, params[_P_VZ_PRIOR], 1)
-    elif not aided:
-        if _velocity_prior(state, params, T, params[_P_V_PRIOR], 3):
-            state[_V_REJ_T] = 0.0
-        else:
-            state[_core.ACC_REJ] = 1.0
-            state[_V_REJ_T] += T
-            if state[_V_REJ_T] > params[_P_V_RESET]:
-                _reset_velocity(state, 0.0, 0.0, 0.0, params[_P_V_PRIOR])
+    if state[_FB_T] > 0.0:
+        # Velocity information: aiding, rotor drag, or the bounded-velocity prior.
+        if math.isfinite(state[_PEND]) or math.isfinite(state[_PEND + 1]) or \
+                math.isfinite(state[_PEND + 2]):
+            if _velocity_aiding(state, params, T, r):
+                state[_V_OK_T] = now
+            else:
+                state[_core.ACC_REJ] = 1.0
+            r = _rotation(state)
+        if params[_P_DRAG] > 0.0:
+            # (at rest a multirotor stands on the ground or hovers: no drag to read)
+            if at_rest or _drag_update(state, params, T, r):
+                state[_V_OK_T] = now
+            else:
+                state[_core.ACC_REJ] = 1.0
+            if not aided:
+                _velocity_prior(state, params, T, params[_P_VZ_PRIOR], 1)
+        elif not aided:
+            if _velocity_prior(state, params, T, params[_P_V_PRIOR], 3):
+                state[_V_OK_T] = now
+            else:
+                state[_core.ACC_REJ] = 1.0
+        if now - state[_V_OK_T] > params[_P_V_RESET]:
+            _recover_velocity(state, params, _rotation(state), aided)
+    state[_PEND] = state[_PEND + 1] = state[_PEND + 2] = math.nan
     if state[_MAG_OK] > 0.0:
         _heading_update(state, params, T)
         state[_MAG_OK] = 0.0
@@ -661,7 +808,7 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
         state[_FB] += ax * dt
         state[_FB + 1] += ay * dt
         state[_FB + 2] += az * dt
-        state[_ACC_N] += 1.0
+        state[_FB_T] += dt
         _core.integrate_exact(state, gx - b0, gy - b1, gz - b2, dt)
         # velocity: trapezoid of the world-frame specific force of this and the last
         # sample, each rotated with the attitude it was measured at
@@ -687,6 +834,7 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
     state[_DV + 1] += fy * dt
     state[_DV + 2] += fz * dt
     state[_ACC_T] += dt
+    _mag_steadiness(state, params, mx, my, mz, mag_ok, dt)
     _rest_detection(state, params, gx, gy, gz, ax, ay, az, acc_ok, dt)
     state[_MAG_DT] += dt
     if mag_ok:
@@ -713,7 +861,7 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
     T = state[_ACC_T]
     _kalman_step(state, params, T)
     state[_ACC_T] = 0.0
-    state[_ACC_N] = 0.0
+    state[_FB_T] = 0.0
     for j in range(3):
         state[_DV + j] = 0.0
         state[_FB + j] = 0.0
@@ -737,13 +885,16 @@ class Eskf(Estimator):
                     "vel_aid_noise", "drag_sigma_init", "drag_noise",
                     "vertical_velocity_prior", "mag_noise", "mag_norm_th", "mag_dip_th",
                     "mag_ref_tau", "rest_gyr_th", "rest_acc_th", "rest_tau", "rest_noise",
-                    "rest_bias_th")
+                    "rest_gravity_noise", "rest_prefilter_tau", "rest_bias_th",
+                    "rest_mag_th")
         for f in positive:
             value = getattr(p, f)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"parameter {f!r} must be a finite number > 0, got {value!r}")
-        for f in ("bias_rw", "velocity_rw", "drag", "mag_ref_time", "mag_new_time",
-                  "mag_reset_time",
+        if not p.velocity_scale > 0.0:  # inf: no weakening
+            raise ValueError(f"parameter 'velocity_scale' must be > 0, got {p.velocity_scale!r}")
+        for f in ("bias_rw", "velocity_rw", "drag", "mag_ref_time", "mag_provisional_time",
+                  "mag_new_time", "mag_reset_time",
                   "rest_time"):
             value = getattr(p, f)
             if not (math.isfinite(value) and value >= 0.0):

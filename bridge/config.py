@@ -58,6 +58,11 @@ class BridgeConfig:
     # Magnetic declination [deg, east positive]: estimators find magnetic north, MAVLink
     # and the truth use true north. None: 0, or the emulator's when it is the source.
     declination_deg: float | None = None
+    # Velocity aiding from the vehicle's LOCAL_POSITION_NED / GLOBAL_POSITION_INT /
+    # GPS_RAW_INT (bridge.aiding); a velocity older than aid_max_age_s when its IMU
+    # sample comes is dropped.
+    aiding: bool = True
+    aid_max_age_s: float = 0.5
     imu_message: str = "RAW_IMU"  # which IMU stream to request from the vehicle
     imu_rate: float = 250.0  # requested IMU rate [Hz]; also the estimators' nominal rate
     out_rate: float = 50.0  # ATTITUDE(_QUATERNION) per second per source; <= 0: every sample
@@ -159,7 +164,7 @@ class BridgeConfig:
         positive = ("imu_rate", "window_s", "status_period_s", "jump_s", "peer_timeout_s",
                     "max_source_rate", "source_timeout_s", "evict_after_s", "clock_resync_s",
                     "reinit_gap_s", "idle_timeout_s", "gyro_range_dps", "accel_range_g",
-                    "mag_range_gauss")
+                    "mag_range_gauss", "aid_max_age_s")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"setting {name!r} must be positive, got {getattr(self, name)!r}")

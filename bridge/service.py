@@ -29,6 +29,7 @@ from imu.boards import board_profile
 from imu.rotations import rotation_matrix
 
 from .admission import Admission
+from .aiding import VELOCITY_MESSAGE_IDS, VelocityAiding
 from .codec import SigningConfig, load_signing_key
 from .compare import compare_all
 from .config import BridgeConfig
@@ -42,6 +43,7 @@ from .ingest import (
 )
 from .links import Link, LinkOptions, UdpLink, open_link, parse_url
 from .mav import MAVLinkMessage, mavlink
+from .model import describe, model_of, type_name
 from .mqtt import MqttPublisher, MqttSettings
 from .output import AttitudeOutput, euler_zyx
 from .pipeline import Estimate, Pipeline
@@ -196,7 +198,8 @@ class BridgeService:
     # --- who is served -----------------------------------------------------------------
     def _add_vehicle(self, sysid: int, how: str) -> Vehicle:
         v = self.vehicles[sysid] = Vehicle(sysid, admitted_by=how,
-                                           request_backoff=STREAM_SILENCE_S)
+                                           request_backoff=STREAM_SILENCE_S,
+                                           aiding=VelocityAiding(self.cfg.aid_max_age_s))
         self.admission.admit_vehicle(sysid)
         log.info("vehicle %d admitted (%s)", sysid, how)
         return v
@@ -278,6 +281,11 @@ class BridgeService:
             else:
                 vehicle.references().add_vehicle_euler(msg.time_boot_ms * 1e-3, msg.roll,
                                                        msg.pitch, msg.yaw)
+        elif msg_id in VELOCITY_MESSAGE_IDS:
+            if compid != vehicle.reference_compid():
+                vehicle.refused["other_component"] += 1
+            elif self.cfg.aiding:
+                vehicle.aiding.offer(msg, msg_id, arrival)
         elif msg_id == ID_SYSTEM_TIME:
             if compid == vehicle.reference_compid():
                 vehicle.boot_hint = (msg.time_boot_ms * 1e-3, arrival)
@@ -303,6 +311,13 @@ class BridgeService:
             return
         vehicle.heartbeats += 1
         vehicle.last_heartbeat = now
+        if msg.type != vehicle.mav_type:
+            if vehicle.mav_type is not None:
+                log.warning("vehicle %d: heartbeat type changed from %s to %s", vehicle.sysid,
+                            type_name(vehicle.mav_type), type_name(msg.type))
+            vehicle.mav_type = msg.type
+            self.pipeline.configure(vehicle.sysid, model=model_of(msg.type))
+        vehicle.autopilot = msg.autopilot
         vehicle.link, vehicle.address = link, link.last_addr
         if vehicle.stream_requests == 0:
             self._request_stream(vehicle)
@@ -332,10 +347,16 @@ class BridgeService:
         vehicle.request_backoff = STREAM_SILENCE_S
         if vehicle.autopilot_compid is None or key.compid == vehicle.autopilot_compid:
             vehicle.link, vehicle.address = link, link.last_addr
+        aiding = vehicle.aiding if self.cfg.aiding else None
         for sample in samples:
             if sample.restart == "reboot" and vehicle.refs is not None:
                 vehicle.refs = None  # the references' clock restarted too
-            est = self.pipeline.process(sample)
+            vel, vel_age = None, 0.0
+            if aiding is not None:
+                if sample.restart is not None:
+                    aiding.forget_pending()
+                vel, vel_age = aiding.take(sample.t, sample.arrival)
+            est = self.pipeline.process(sample, vel, vel_age)
             if est.initialising:
                 self.output.hold(est)
             else:
@@ -449,7 +470,21 @@ class BridgeService:
             "latency_ms": self.output.latency_percentiles_ms(),
             "estimator_counters": counters, "compare": compare,
             "stream_requests": vehicle.stream_requests,
+            "vehicle": self._vehicle_description(vehicle),
+            "aiding": {**vehicle.aiding.status(), "enabled": self.cfg.aiding,
+                       "aided_samples": src.aided if src is not None else 0},
         }
+
+    def _vehicle_description(self, vehicle: Vehicle) -> dict[str, Any]:
+        """What the heartbeat says the vehicle is, and what that made of the estimators."""
+        model = model_of(vehicle.mav_type)
+        autopilot = None
+        if vehicle.autopilot is not None:
+            entry = mavlink.enums["MAV_AUTOPILOT"].get(vehicle.autopilot)
+            autopilot = entry.name if entry is not None else str(vehicle.autopilot)
+        return {"autopilot": autopilot, "type": type_name(vehicle.mav_type), "model": model,
+                "estimators": {spec.label: describe(spec, model)
+                               for spec in self.pipeline.specs}}
 
     def link_status(self) -> dict[str, Any]:
         c = self.link.codec.stats

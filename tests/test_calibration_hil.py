@@ -20,6 +20,7 @@ from bridge.calibrate_cli import emulator_samples
 from bridge.emulator import emulator_declination_deg
 from estimators import metrics
 from estimators import quat as Q
+from estimators.eskf import MULTIROTOR_DRAG_PER_S
 from hil import Emulator, EmulatorConfig, simulate
 from hil.motion import calibration_duration_s
 from hil.sensors.hmc5883l import Hmc5883lConfig
@@ -47,9 +48,12 @@ def fitted(seed: int) -> tuple:
 
 
 def eskf_error_after_10s(rec, gyr, acc, mag) -> float:
+    """eskf as the bridge runs it on the emulator, whose heartbeat says quadrotor: with
+    the rotor-drag model."""
     dt = np.diff(rec.time_us, prepend=rec.time_us[0] - round(1e6 / RATE_HZ)) * 1e-6
     q = estimators.batch("eskf", gyr, acc, mag, rate_hz=RATE_HZ, dt=dt,
-                         declination=math.radians(emulator_declination_deg()))
+                         declination=math.radians(emulator_declination_deg()),
+                         drag=MULTIROTOR_DRAG_PER_S)
     converged = rec.t_s >= 10.0
     return metrics.rms_errors(q[converged], rec.truth_q[converged]).total_deg
 
@@ -128,7 +132,8 @@ def test_bridge_with_calibration_file_meets_the_target(tmp_path):
     dt = np.diff(rec.time_us, prepend=rec.time_us[0] - round(1e6 / RATE_HZ)) * 1e-6
     q = estimators.batch("eskf", loaded.gyro(rec.gyr), loaded.accel(rec.acc),
                          loaded.mag(rec.mag), rate_hz=RATE_HZ, dt=dt,
-                         declination=math.radians(emulator_declination_deg()))
+                         declination=math.radians(emulator_declination_deg()),
+                         drag=MULTIROTOR_DRAG_PER_S)
     offline = dict(zip((rec.time_us // 1000).tolist(), q, strict=True))
     same = np.array([offline[t] for t in stamps])
     assert np.max(np.degrees(Q.angle_between(est, same))) < 0.05

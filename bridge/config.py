@@ -19,8 +19,8 @@ from imu.boards import PROFILES
 from imu.calibration import SensorCalibration
 from imu.rotations import rotation_matrix
 
-from .ingest import IMU_MESSAGE_NAMES
 from .mav import BRIDGE_COMPONENT_ID
+from .negotiate import parse_forced
 
 #: Preferred default primary estimator, first one available wins.
 DEFAULT_ESTIMATORS = ("eskf", "mahony", "madgwick", "quaternion")
@@ -50,7 +50,9 @@ class BridgeConfig:
     mqtt_key: str | None = None
     mqtt_rate: float = 10.0  # per-estimator attitude messages per second per source
     mqtt_prefix: str = "attitude"
-    board: str = "gy86"
+    # What RAW_IMU integers mean (imu.boards); None: from the vehicle's autopilot
+    # (ArduPilot: "ardupilot", anything else: "gy86").
+    board: str | None = None
     rotation: str = "NONE"
     # Sensor calibration TOML (``attitude-bridge calibrate`` writes one), applied to every
     # IMU sample after board scaling and rotation. None: uncalibrated.
@@ -63,7 +65,9 @@ class BridgeConfig:
     # sample comes is dropped.
     aiding: bool = True
     aid_max_age_s: float = 0.5
-    imu_message: str = "RAW_IMU"  # which IMU stream to request from the vehicle
+    # IMU stream to ask the vehicle for; None: negotiated from its autopilot
+    # (bridge.negotiate); "A,B": these, in this order.
+    imu_message: str | None = None
     imu_rate: float = 250.0  # requested IMU rate [Hz]; also the estimators' nominal rate
     out_rate: float = 50.0  # ATTITUDE(_QUATERNION) per second per source; <= 0: every sample
     component_id: int = BRIDGE_COMPONENT_ID
@@ -117,13 +121,11 @@ class BridgeConfig:
             parse_url(url)
         for spec in self.estimator_specs:
             spec.validate()
-        if self.board not in PROFILES:
+        if self.board is not None and self.board not in PROFILES:
             raise ValueError(f"unknown board {self.board!r}; valid: {sorted(PROFILES)}")
         rotation_matrix(self.rotation)
         self.sensor_calibration()
-        if self.imu_message not in IMU_MESSAGE_NAMES:
-            raise ValueError(f"unknown IMU message {self.imu_message!r}; "
-                             f"valid: {sorted(IMU_MESSAGE_NAMES)}")
+        parse_forced(self.imu_message)
         if not 1 <= self.component_id <= 255 or not 1 <= self.system_id <= 255:
             raise ValueError("component_id and system_id must be in 1..255")
         if self.mqtt:

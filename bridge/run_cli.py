@@ -37,7 +37,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mqtt-rate", type=float, metavar="HZ",
                    help="attitude messages per estimator per second (default 10)")
     p.add_argument("--board", choices=("gy86", "ardupilot"),
-                   help="what RAW_IMU integers mean (default gy86)")
+                   help="what RAW_IMU integers mean (default: from the vehicle's autopilot, "
+                        "ArduPilot: ardupilot, others: gy86)")
     p.add_argument("--rotation", metavar="NAME",
                    help="board mounting rotation, PX4/ArduPilot name, e.g. YAW_90")
     p.add_argument("--calibration", metavar="FILE.toml",
@@ -46,9 +47,10 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--declination", dest="declination_deg", type=float, metavar="DEG",
                    help="magnetic declination, east positive: report true north (default 0; "
                         "the built-in emulator's own when it is the source)")
-    p.add_argument("--imu-message", choices=("RAW_IMU", "SCALED_IMU", "SCALED_IMU2",
-                                             "SCALED_IMU3", "HIGHRES_IMU"),
-                   help="IMU stream to request from the vehicle (default RAW_IMU)")
+    p.add_argument("--imu-message", metavar="NAME[,NAME...]",
+                   help="IMU stream to ask the vehicle for: RAW_IMU, SCALED_IMU, SCALED_IMU2, "
+                        "SCALED_IMU3 or HIGHRES_IMU; several (comma-separated) are tried in "
+                        "order (default: negotiated from its autopilot, e.g. PX4 HIGHRES_IMU)")
     p.add_argument("--imu-rate", type=float, metavar="HZ",
                    help="IMU rate to request (MAV_CMD_SET_MESSAGE_INTERVAL), default 250")
     p.add_argument("--out-rate", type=float, metavar="HZ",

@@ -37,7 +37,6 @@ from .ingest import (
     DROP_CAUSES,
     FLAG_CAUSES,
     IMU_MESSAGE_IDS,
-    IMU_MESSAGE_NAMES,
     Ingest,
     Limits,
 )
@@ -45,6 +44,7 @@ from .links import Link, LinkOptions, UdpLink, open_link, parse_url
 from .mav import MAVLinkMessage, mavlink
 from .model import describe, model_of, type_name
 from .mqtt import MqttPublisher, MqttSettings
+from .negotiate import Request, StreamNegotiation, board_for, parse_forced
 from .output import AttitudeOutput, euler_zyx
 from .pipeline import Estimate, Pipeline
 from .vehicle import CONFIGURED, HEARTBEAT, PROVISIONAL, Vehicle
@@ -57,6 +57,7 @@ ID_ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
 ID_ATTITUDE_QUATERNION = mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
 ID_COMMAND_ACK = mavlink.MAVLINK_MSG_ID_COMMAND_ACK
 ID_SYSTEM_TIME = mavlink.MAVLINK_MSG_ID_SYSTEM_TIME
+ID_RAW_IMU = mavlink.MAVLINK_MSG_ID_RAW_IMU
 
 #: Ask again for the IMU stream after this long without samples, backing off to the max;
 #: only while the vehicle's autopilot is heard (its heartbeat within HEARTBEAT_ALIVE_S).
@@ -100,7 +101,7 @@ class BridgeService:
                                  for u in cfg.outs]
         for out in self.outs:
             out.gate = Admission(cfg.max_source_rate)
-        self.ingest = Ingest(board_profile(cfg.board), rotation_matrix(cfg.rotation),
+        self.ingest = Ingest(board_profile(cfg.board or "gy86"), rotation_matrix(cfg.rotation),
                              cfg.jump_s, cfg.reorder_s, cfg.sensor_calibration(),
                              Limits(cfg.gyro_range_dps, cfg.accel_range_g,
                                     cfg.mag_range_gauss),
@@ -114,6 +115,7 @@ class BridgeService:
                 cfg.mqtt, username=cfg.mqtt_username, password=cfg.mqtt_password,
                 tls=cfg.mqtt_tls or None, ca_file=cfg.mqtt_ca, cert_file=cfg.mqtt_cert,
                 key_file=cfg.mqtt_key, topic_prefix=cfg.mqtt_prefix))
+        self.forced_imu = parse_forced(cfg.imu_message)
         self.vehicles: dict[int, Vehicle] = {}
         for sysid in cfg.vehicles:
             self._add_vehicle(sysid, CONFIGURED)
@@ -124,7 +126,6 @@ class BridgeService:
         self.last_status: dict[int, dict[str, Any]] = {}
         self.on_status: Callable[[BridgeService], None] | None = None
         self.ready = asyncio.Event()
-        self.imu_msg_id = IMU_MESSAGE_NAMES[cfg.imu_message]
         self._mqtt_period = 1.0 / cfg.mqtt_rate if cfg.mqtt_rate > 0 else 0.0
         self._last_status_wall = time.monotonic()
 
@@ -197,9 +198,11 @@ class BridgeService:
 
     # --- who is served -----------------------------------------------------------------
     def _add_vehicle(self, sysid: int, how: str) -> Vehicle:
-        v = self.vehicles[sysid] = Vehicle(sysid, admitted_by=how,
-                                           request_backoff=STREAM_SILENCE_S,
-                                           aiding=VelocityAiding(self.cfg.aid_max_age_s))
+        v = self.vehicles[sysid] = Vehicle(
+            sysid, admitted_by=how, request_backoff=STREAM_SILENCE_S,
+            aiding=VelocityAiding(self.cfg.aid_max_age_s),
+            negotiation=StreamNegotiation(sysid, self.cfg.imu_rate, self.forced_imu,
+                                          self.cfg.aiding))
         self.admission.admit_vehicle(sysid)
         log.info("vehicle %d admitted (%s)", sysid, how)
         return v
@@ -290,7 +293,7 @@ class BridgeService:
             if compid == vehicle.reference_compid():
                 vehicle.boot_hint = (msg.time_boot_ms * 1e-3, arrival)
         elif msg_id == ID_COMMAND_ACK:
-            vehicle.command_acks += 1
+            self._command_ack(vehicle, msg, compid)
 
     def _heartbeat(self, vehicle: Vehicle, msg: MAVLinkMessage, compid: int, link: Link,
                    now: float) -> None:
@@ -317,26 +320,48 @@ class BridgeService:
                             type_name(vehicle.mav_type), type_name(msg.type))
             vehicle.mav_type = msg.type
             self.pipeline.configure(vehicle.sysid, model=model_of(msg.type))
-        vehicle.autopilot = msg.autopilot
+        if msg.autopilot != vehicle.autopilot:
+            self._autopilot_known(vehicle, msg.autopilot)
         vehicle.link, vehicle.address = link, link.last_addr
-        if vehicle.stream_requests == 0:
-            self._request_stream(vehicle)
+        self._pump_requests(vehicle)
+
+    def _autopilot_known(self, vehicle: Vehicle, autopilot: int) -> None:
+        """What the autopilot is decides what its RAW_IMU integers mean (unless --board
+        says) and which IMU stream to ask it for."""
+        vehicle.autopilot = autopilot
+        if self.cfg.board is None:
+            board = board_for(autopilot)
+            if self.ingest.set_board(vehicle.sysid, board_profile(board)):
+                log.info("vehicle %d: RAW_IMU read as %s units", vehicle.sysid, board)
+                if vehicle.primary is not None and vehicle.primary.msg == ID_RAW_IMU:
+                    self._forget_source(vehicle.primary)
+                    vehicle.primary = None
+        vehicle.negotiation.start(autopilot)
+
+    def _command_ack(self, vehicle: Vehicle, msg: MAVLinkMessage, compid: int) -> None:
+        """COMMAND_ACK for one of our SET_MESSAGE_INTERVAL requests: on to the next."""
+        vehicle.command_acks += 1
+        ours = getattr(msg, "target_component", 0) in (0, self.cfg.component_id)
+        if compid != vehicle.autopilot_compid or not ours or \
+                msg.command != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return
+        vehicle.negotiation.on_ack(msg.result, time.monotonic())
+        self._pump_requests(vehicle)
 
     def _imu(self, vehicle: Vehicle, msg: MAVLinkMessage, link: Link, arrival: float,
              now: float) -> None:
         key = self.ingest.key_of(msg)
         assert key is not None
         old = vehicle.primary
-        use, new = vehicle.choose_source(key, now, self.cfg.imu_id, self.imu_msg_id,
+        use, new = vehicle.choose_source(key, now, self.cfg.imu_id,
+                                         vehicle.negotiation.preferred_id,
                                          self.cfg.source_timeout_s)
         if not use:
             return
         if new:
             for stale in (old, key):
                 if stale is not None:
-                    self.ingest.forget(stale)
-                    self.pipeline.forget(stale)
-                    self.output.forget(stale)
+                    self._forget_source(stale)
         state = self.ingest.sources.get(key)
         if state is not None:
             state.clock.boot_hint = vehicle.boot_hint
@@ -348,7 +373,9 @@ class BridgeService:
         if vehicle.autopilot_compid is None or key.compid == vehicle.autopilot_compid:
             vehicle.link, vehicle.address = link, link.last_addr
         aiding = vehicle.aiding if self.cfg.aiding else None
+        negotiation = vehicle.negotiation
         for sample in samples:
+            negotiation.observe(key.msg, sample.t)
             if sample.restart == "reboot" and vehicle.refs is not None:
                 vehicle.refs = None  # the references' clock restarted too
             vel, vel_age = None, 0.0
@@ -364,33 +391,46 @@ class BridgeService:
             if self.mqtt is not None:
                 self._maybe_publish_estimates(vehicle, est)
 
-    # --- IMU stream requests -------------------------------------------------------------
-    def _request_stream(self, vehicle: Vehicle) -> None:
-        """MAV_CMD_SET_MESSAGE_INTERVAL for the configured IMU message and rate, to the
-        vehicle's own address only."""
-        if vehicle.link is None:
+    # --- stream requests -----------------------------------------------------------------
+    def _forget_source(self, key) -> None:
+        self.ingest.forget(key)
+        self.pipeline.forget(key)
+        self.output.forget(key)
+
+    def _pump_requests(self, vehicle: Vehicle) -> None:
+        """Send the vehicle's next SET_MESSAGE_INTERVAL if one is due (see
+        bridge.negotiate), to its own address only, while its autopilot is heard."""
+        if vehicle.link is None or vehicle.autopilot_compid is None:
             return
+        if time.monotonic() - vehicle.last_heartbeat > HEARTBEAT_ALIVE_S:
+            return  # nobody there to ask
+        req = vehicle.negotiation.next_send(time.monotonic())
+        if req is not None:
+            self._send_request(vehicle, req)
+
+    def _send_request(self, vehicle: Vehicle, req: Request) -> None:
         cmd = mavlink.MAVLink_command_long_message(
             vehicle.sysid, vehicle.autopilot_compid or 1,
             mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-            float(self.imu_msg_id), 1e6 / self.cfg.imu_rate, 0, 0, 0, 0, 0)
+            float(req.msg_id), req.interval_us, 0, 0, 0, 0, 0)
         vehicle.link.send_to(cmd, vehicle.sysid, self.cfg.component_id, vehicle.address)
         vehicle.stream_requests += 1
-        vehicle.next_request = time.monotonic() + vehicle.request_backoff
-        log.info("asked vehicle %d for %s at %g Hz", vehicle.sysid, self.cfg.imu_message,
-                 self.cfg.imu_rate)
+        log.info("asked vehicle %d for %s at %g Hz", vehicle.sysid, req.name, req.rate_hz)
 
     def _request_streams(self) -> None:
+        """Retries (no answer yet), and the IMU stream asked for again when it stopped
+        coming, backing off to STREAM_RETRY_MAX_S."""
         now = time.monotonic()
         for vehicle in self.vehicles.values():
-            if vehicle.autopilot_compid is None or now < vehicle.next_request:
+            if vehicle.autopilot_compid is None:
                 continue
-            if now - vehicle.last_heartbeat > HEARTBEAT_ALIVE_S:
-                continue  # nobody there to ask
-            if now - vehicle.last_imu > STREAM_SILENCE_S:
-                self._request_stream(vehicle)
+            if now >= vehicle.next_request and now - vehicle.last_imu > STREAM_SILENCE_S \
+                    and vehicle.stream_requests > 0:
+                vehicle.negotiation.repeat_imu()
+                vehicle.next_request = now + vehicle.request_backoff
                 vehicle.request_backoff = min(2.0 * vehicle.request_backoff,
                                               STREAM_RETRY_MAX_S)
+            self._pump_requests(vehicle)
 
     # --- MQTT ----------------------------------------------------------------------------
     def _maybe_publish_estimates(self, vehicle: Vehicle, est: Estimate) -> None:
@@ -470,6 +510,8 @@ class BridgeService:
             "latency_ms": self.output.latency_percentiles_ms(),
             "estimator_counters": counters, "compare": compare,
             "stream_requests": vehicle.stream_requests,
+            "imu_stream": vehicle.negotiation.status(),
+            "board": self.ingest.board_of(vehicle.sysid).name,
             "vehicle": self._vehicle_description(vehicle),
             "aiding": {**vehicle.aiding.status(), "enabled": self.cfg.aiding,
                        "aided_samples": src.aided if src is not None else 0},

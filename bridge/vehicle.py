@@ -32,6 +32,7 @@ from typing import Any
 from .aiding import VelocityAiding
 from .compare import References
 from .ingest import SourceKey
+from .negotiate import StreamNegotiation
 from .sequence import SequenceTracker
 
 #: Per-vehicle sequence trackers (one per sending component) kept at most.
@@ -67,6 +68,8 @@ class Vehicle:
     boot_hint: tuple[float, float] | None = None  # SYSTEM_TIME: (board s, perf_counter)
     refs: References | None = None
     aiding: VelocityAiding = field(default_factory=VelocityAiding)
+    negotiation: StreamNegotiation = field(  # the service gives each its settings
+        default_factory=lambda: StreamNegotiation(0, 250.0))
     sequences: dict[int, SequenceTracker] = field(default_factory=dict)
     next_mqtt_t: dict[Any, float] = field(default_factory=dict)
     samples_at_last_status: int = 0

@@ -62,16 +62,18 @@ TAKEOFF_CLIMB_M = 1.0
 
 #: The grid the leave-one-trial-out tuning chooses from (eskf parameter -> values).
 GRID: dict[str, tuple[float, ...]] = {
-    "velocity_prior": (0.05, 0.1, 0.2),
-    "velocity_rw": (0.02, 0.05, 0.1),
-    "mag_noise": (0.1, 0.15, 0.25),
-    "gyro_noise": (0.005, 0.008, 0.012, 0.018),
+    "velocity_prior": (0.1, 0.2, 0.4),
+    "velocity_rw": (0.05, 0.1, 0.2),
+    "mag_noise": (0.15, 0.25, 0.4),
+    "gyro_noise": (0.008, 0.012, 0.018),
+    "vel_aid_noise": (0.1, 0.2, 0.4),
 }
 QUICK_GRID: dict[str, tuple[float, ...]] = {
-    "velocity_prior": (0.1,),
-    "velocity_rw": (0.05,),
-    "mag_noise": (0.05, 0.15),
-    "gyro_noise": (0.005,),
+    "velocity_prior": (0.2,),
+    "velocity_rw": (0.1,),
+    "mag_noise": (0.15, 0.25),
+    "gyro_noise": (0.012,),
+    "vel_aid_noise": (0.1, 0.4),
 }
 
 
@@ -307,11 +309,11 @@ def trial_total(scores: dict[str, ErrorRms]) -> float:
 
 def leave_one_out(trials: list[Trial], grid: dict[str, tuple[float, ...]],
                   progress: Callable[[str], None] = print
-                  ) -> tuple[list[dict[str, float]], np.ndarray, list[dict[str, ErrorRms]]]:
+                  ) -> tuple[list[dict[str, float]], np.ndarray, list[tuple]]:
     """Scores of every grid point on every trial, and per trial the held-out result.
 
-    Returns (points, totals[p, t], held_out[t]) where held_out[t] maps run label to the
-    errors of the point chosen without trial t."""
+    Returns (points, totals[p, t], held_out[t]) where held_out[t] is (the point chosen
+    without trial t, that point's errors on trial t by run label)."""
     points = grid_points(grid)
     scores = []
     began = time.perf_counter()
@@ -352,7 +354,11 @@ def main(argv: list[str] | None = None) -> int:
         grid = QUICK_GRID if args.quick else GRID
         print(f"leave-one-trial-out over {len(grid_points(grid))} eskf parameter sets "
               f"({', '.join(grid)}) and {len(trials)} trials")
-        _, _, held = leave_one_out(trials, grid)
+        points, totals, held = leave_one_out(trials, grid)
+        best_all = points[int(np.argmin(totals.mean(axis=1)))]
+        print("chosen on all trials (what the defaults should be): "
+              + ", ".join(f"{k}={v:g}" for k, v in best_all.items()))
+        doc["chosen_on_all"] = best_all
         held_row = Row("eskf leave-one-out", {})
         for t, (_, errs) in zip(trials, held, strict=True):
             for label, err in errs.items():

@@ -1,10 +1,12 @@
 """``attitude-bridge calibrate``: fit a sensor calibration from logs (or the emulator).
 
     attitude-bridge calibrate LOG... -o calib.toml [--board gy86] [--rotation NAME]
+                              [--no-gyro|--no-gyro-matrix|--no-accel|--no-mag]
     attitude-bridge calibrate --emulator [--seed 1] -o calib.toml
 
-The log should show the board held still in many orientations (each face down, a few
-edges and corners, ~2 s each) and turned slowly through all orientations in between;
+The log should show the board held still in many orientations (each of the six faces
+down, square on a level surface, and a few edges and corners, ~2 s each) and turned
+about every axis through all orientations in between;
 ``hil``'s ``calibration`` motion profile does exactly that. The written file is used by
 ``attitude-bridge run --calibration calib.toml`` (or ``calibration = "..."`` in the
 settings TOML).
@@ -24,11 +26,12 @@ from imu.calibration_fit import BLOCK_S, fit_calibration
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "calibrate", help="fit gyro/accelerometer/magnetometer calibration from logs",
-        description="Fit a gyro offset (longest still stretch), an accelerometer offset and "
-                    "matrix (static poses) and a magnetometer hard/soft-iron correction "
-                    "(ellipsoid) from logs in which the board is turned through many "
-                    "orientations and held still in each. Refuses data that cannot "
-                    "determine the calibration.")
+        description="Fit a gyro offset (longest still stretch) and matrix (turns between "
+                    "static poses), an accelerometer offset and matrix (static poses; the "
+                    "full matrix when all six faces were held square on a level surface) "
+                    "and a magnetometer hard/soft-iron correction (ellipsoid) from logs in "
+                    "which the board is turned through many orientations and held still "
+                    "in each. Refuses data that cannot determine the calibration.")
     p.add_argument("logs", nargs="*", type=Path, metavar="LOG",
                    help="tlog (RAW_IMU via --board), CSV or npz file(s); samples of all "
                         "files are pooled")
@@ -43,7 +46,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "(same sensor errors as `run`/`demo` with the same --seed)")
     p.add_argument("--seed", type=int, default=1, help="emulator seed (default 1, the "
                                                        "built-in emulator's)")
-    p.add_argument("--no-gyro", action="store_true", help="leave the gyro offset at zero")
+    p.add_argument("--no-gyro", action="store_true",
+                   help="leave the gyro as is (offset zero, identity matrix)")
+    p.add_argument("--no-gyro-matrix", action="store_true",
+                   help="fit the gyro offset only, not its scale and cross-axis matrix")
     p.add_argument("--no-accel", action="store_true", help="leave the accelerometer as is")
     p.add_argument("--no-mag", action="store_true", help="leave the magnetometer as is")
     p.set_defaults(func=main)
@@ -98,7 +104,8 @@ def main(args: argparse.Namespace) -> int:
         mag = None if mag is None else mag @ rot.T
         cal, report = fit_calibration(gyr, acc, mag, rate, gyro=not args.no_gyro,
                                       accel=not args.no_accel,
-                                      magnetometer=not args.no_mag)
+                                      magnetometer=not args.no_mag,
+                                      gyro_matrix=not args.no_gyro_matrix)
     except ValueError as exc:  # includes unreadable logs (ReplayInputError)
         print(f"attitude-bridge calibrate: {exc}", file=sys.stderr)
         return 2

@@ -50,7 +50,9 @@ walk and a velocity random walk.
   ``P`` consistent), so a disturbed field cannot tilt the estimate, while the bias
   along the vertical still learns from it. Chi-square gated, and paused while the
   field's norm or dip departs from the reference learned while undisturbed (VQF's
-  10 % / 10°; a new field consistent for ``mag_new_time`` becomes the reference).
+  10 % / 10°; a new field consistent for ``mag_new_time`` becomes the reference). An
+  undisturbed field rejected by the chi-square test for ``mag_reset_time`` resets the
+  heading to it (as PX4's EKF2 resets its yaw): our heading is what went wrong.
 
 Defaults: rest thresholds and magnetic-disturbance thresholds are VQF's published
 values; the noise densities were chosen by leave-one-trial-out on the BROAD trials and
@@ -77,6 +79,9 @@ MULTIROTOR_DRAG_PER_S = 0.5
 # Chi-square 99.9 % points for 1, 2 and 3 degrees of freedom: a measurement further from
 # its prediction than this, in its own predicted uncertainty, is an outlier.
 _GATE = (0.0, 10.828, 13.816, 16.266)
+#: A repeated magnetometer reading stops being used once the body has turned this far
+#: since it was taken (the heading error a stale reading would bring in) [rad].
+_MAG_STALE_RAD = 0.1 * math.pi / 180.0
 _NX = 10  # error state: δθ(3), δb(3), δv(3), δμ
 _TH, _BI, _VE, _MU = 0, 3, 6, 9
 
@@ -87,7 +92,7 @@ class EskfParams(CommonParams):
                                        "integrated, so the filter's cost and behaviour do "
                                        "not depend on the IMU rate")
     gravity: float = param(G, "gravity [m/s^2]")
-    gyro_noise: float = param(0.005, "attitude random walk [rad/sqrt(s)]: gyro noise plus "
+    gyro_noise: float = param(0.012, "attitude random walk [rad/sqrt(s)]: gyro noise plus "
                                      "its unmodelled errors (scale, misalignment)")
     bias_rw: float = param(1e-4, "gyro-bias random walk [rad/s/sqrt(s)]")
     bias_init: float = param(0.5 * _DEG, "initial gyro-bias standard deviation [rad/s]")
@@ -95,10 +100,10 @@ class EskfParams(CommonParams):
                                          "MPU6050's zero-rate offset range)")
     tilt_init: float = param(5.0 * _DEG, "initial tilt standard deviation [rad]")
     heading_init: float = param(10.0 * _DEG, "initial heading standard deviation [rad]")
-    velocity_rw: float = param(0.05, "velocity random walk [m/s/sqrt(s)]: how fast the "
+    velocity_rw: float = param(0.1, "velocity random walk [m/s/sqrt(s)]: how fast the "
                                      "velocity may drift from what the accelerometer says "
                                      "(accelerometer noise, scale errors, lever arm)")
-    velocity_prior: float = param(0.1, "bounded-velocity pseudo-measurement v ≈ 0, noise "
+    velocity_prior: float = param(0.2, "bounded-velocity pseudo-measurement v ≈ 0, noise "
                                        "density [m/s·sqrt(s)] (no aiding, no drag model)")
     velocity_reset_time: float = param(3.0, "velocity re-anchored after this long [s] of "
                                             "rejected velocity information")
@@ -109,13 +114,15 @@ class EskfParams(CommonParams):
     drag_noise: float = param(0.3, "drag measurement noise density [m/s^2·sqrt(s)]")
     vertical_velocity_prior: float = param(1.0, "multirotor: vertical velocity ≈ 0 "
                                                 "pseudo-measurement density [m/s·sqrt(s)]")
-    mag_noise: float = param(0.15, "magnetometer heading noise density [rad·sqrt(s)]")
+    mag_noise: float = param(0.25, "magnetometer heading noise density [rad·sqrt(s)]")
     mag_norm_th: float = param(0.1, "magnetic disturbance: relative field-norm deviation")
     mag_dip_th: float = param(10.0 * _DEG, "magnetic disturbance: dip-angle deviation [rad]")
     mag_ref_time: float = param(5.0, "a field consistent this long [s] becomes the first "
                                      "reference")
     mag_new_time: float = param(20.0, "a disturbed but consistent field becomes the new "
                                       "reference after this long [s]")
+    mag_reset_time: float = param(5.0, "an undisturbed field whose heading innovations are "
+                                       "rejected this long [s] resets the heading to it")
     mag_ref_tau: float = param(20.0, "time constant [s] with which undisturbed field "
                                      "norm/dip refine the reference")
     rest_gyr_th: float = param(2.0 * _DEG, "rest: gyro deviation from its low-pass below "
@@ -136,12 +143,14 @@ _PARAM_FIELDS = (
     "tilt_init", "heading_init", "velocity_rw", "velocity_prior", "velocity_reset_time",
     "vel_aid_noise", "drag", "drag_sigma_init", "drag_noise", "vertical_velocity_prior",
     "mag_noise", "mag_norm_th", "mag_dip_th", "mag_ref_time", "mag_new_time",
+    "mag_reset_time",
     "mag_ref_tau", "rest_gyr_th", "rest_acc_th", "rest_time", "rest_tau", "rest_noise",
     "rest_bias_th", "aid_timeout",
 )
 (_P_PERIOD, _P_GRAV, _P_GYR_N, _P_B_RW, _P_B_INIT, _P_B_MAX, _P_TILT0, _P_HEAD0,
  _P_V_RW, _P_V_PRIOR, _P_V_RESET, _P_AID_N, _P_DRAG, _P_DRAG0, _P_DRAG_N, _P_VZ_PRIOR,
- _P_MAG_N, _P_MAG_NORM, _P_MAG_DIP, _P_MAG_REF_T, _P_MAG_NEW_T, _P_MAG_REF_TAU,
+ _P_MAG_N, _P_MAG_NORM, _P_MAG_DIP, _P_MAG_REF_T, _P_MAG_NEW_T, _P_MAG_RESET,
+ _P_MAG_REF_TAU,
  _P_REST_GYR, _P_REST_ACC, _P_REST_T, _P_REST_TAU, _P_REST_N,
  _P_REST_BIAS, _P_AID_TIMEOUT) = range(len(_PARAM_FIELDS))
 
@@ -162,6 +171,8 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _ACC_N,  # usable accelerometer samples in that time
  _DV,  # 3: ∫R·f dt over that time (world)
  _FB,  # 3: ∫f dt (body, as measured), for the drag measurement
+ _FW,  # 3: the last sample's specific force in the world frame (trapezoidal integration)
+ _FW_OK,  # 1 when _FW holds one
  _GLP,  # 3: gyro low-pass (rest detection; the bias it measures)
  _ALP,  # 3: accelerometer low-pass (rest detection)
  _REST_T,  # how long rest conditions have held [s]
@@ -174,14 +185,16 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _PEND_AGE,  # its age at the update [s]
  _MAG,  # 3: newest magnetometer reading of the period
  _MAG_OK,  # 1 if _MAG holds one
- _MAG_PREV,  # 3: the previous magnetometer sample as given (repeats are not new)
+ _MAG_PREV,  # 3: the previous magnetometer sample as given
+ _MAG_TURN,  # how far the body has turned since that reading was first seen [rad]
  _MAG_DT,  # time since the last magnetometer update [s]
+ _MAG_REJ_T,  # heading innovations rejected for this long [s]
  _H,  # scratch: measurement rows (3 × _NX)
  _PHT,  # scratch: P·Hᵀ (_NX × 3)
  _K,  # scratch: gain (_NX × 3)
  _X,  # scratch: error-state correction (_NX)
- _STATE_SIZE) = _layout(3, 1, _NX * _NX, 1, 1, 3, 3, 3, 3, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 3,
-                        1, 3, 1, 3, 1, 3 * _NX, 3 * _NX, 3 * _NX, _NX)
+ _STATE_SIZE) = _layout(3, 1, _NX * _NX, 1, 1, 3, 3, 3, 1, 3, 3, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 3,
+                        1, 3, 1, 3, 1, 1, 1, 3 * _NX, 3 * _NX, 3 * _NX, _NX)
 
 
 @_core.kernel(inline="always")
@@ -529,7 +542,11 @@ def _heading_update(state: np.ndarray, params: np.ndarray, T: float) -> None:
     s = p22 + rn
     if nu * nu > _GATE[1] * s:
         state[_core.MAG_REJ] = 1.0
+        state[_MAG_REJ_T] += T
+        if state[_MAG_REJ_T] > params[_P_MAG_RESET]:
+            _reset_heading(state, params, nu)
         return
+    state[_MAG_REJ_T] = 0.0
     # K = P[:, 2]/s with K[0] = K[1] = 0; P ← (I − K e₂ᵀ) P (I − K e₂ᵀ)ᵀ + K·r·Kᵀ,
     # from a copy c of column 2 (= row 2) since P is overwritten in place.
     for i in range(_NX):
@@ -545,6 +562,21 @@ def _heading_update(state: np.ndarray, params: np.ndarray, T: float) -> None:
             state[_pi(i, j)] = v
             state[_pi(j, i)] = v
     _inject(state, params)
+
+
+@_core.kernel
+def _reset_heading(state: np.ndarray, params: np.ndarray, nu: float) -> None:
+    """Turn to the magnetometer's heading and forget the heading's correlations: an
+    undisturbed field (norm and dip as learned) that has disagreed for
+    ``mag_reset_time`` means our heading is wrong, not the field (a gyro-bias step)."""
+    for j in range(_NX):
+        state[_X + j] = 0.0
+        state[_pi(2, j)] = 0.0
+        state[_pi(j, 2)] = 0.0
+    state[_pi(2, 2)] = params[_P_HEAD0] ** 2
+    state[_X + 2] = nu
+    _inject(state, params)
+    state[_MAG_REJ_T] = 0.0
 
 
 @_core.kernel(inline="always")
@@ -593,11 +625,11 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
         state[_PEND] = state[_PEND + 1] = state[_PEND + 2] = math.nan
         r = _rotation(state)
     aided = state[_core.RUN_T] - state[_AID_T] <= params[_P_AID_TIMEOUT]
-    at_rest = state[_REST_T] >= params[_P_REST_T]
+    if state[_REST_T] >= params[_P_REST_T]:
+        _rest_update(state, params, T)
+        r = _rotation(state)
     if state[_ACC_N] <= 0.0:
         pass
-    elif at_rest:
-        _rest_update(state, params, T)
     elif params[_P_DRAG] > 0.0:
         if not _drag_update(state, params, T, r):
             state[_core.ACC_REJ] = 1.0
@@ -628,16 +660,24 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
         state[_FB + 1] += ay * dt
         state[_FB + 2] += az * dt
         state[_ACC_N] += 1.0
-        # strapdown: specific force rotated with the attitude at the middle of the step
-        f0x, f0y, f0z = _core.body_to_world(state, ax, ay, az)
         _core.integrate_exact(state, gx - b0, gy - b1, gz - b2, dt)
+        # velocity: trapezoid of the world-frame specific force of this and the last
+        # sample, each rotated with the attitude it was measured at
         f1x, f1y, f1z = _core.body_to_world(state, ax, ay, az)
-        fx, fy, fz = 0.5 * (f0x + f1x), 0.5 * (f0y + f1y), 0.5 * (f0z + f1z)
+        if state[_FW_OK] > 0.0:
+            fx = 0.5 * (state[_FW] + f1x)
+            fy = 0.5 * (state[_FW + 1] + f1y)
+            fz = 0.5 * (state[_FW + 2] + f1z)
+        else:
+            fx, fy, fz = f1x, f1y, f1z
+        state[_FW], state[_FW + 1], state[_FW + 2] = f1x, f1y, f1z
+        state[_FW_OK] = 1.0
     else:
         # No usable specific force (NaN, saturated): the gyro alone carries the attitude;
         # a period without any usable sample makes no velocity statement (_kalman_step).
         _core.integrate_exact(state, gx - b0, gy - b1, gz - b2, dt)
         fx, fy, fz = 0.0, 0.0, -grav
+        state[_FW_OK] = 0.0
     state[_V] += fx * dt
     state[_V + 1] += fy * dt
     state[_V + 2] += (fz + grav) * dt
@@ -647,14 +687,18 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
     state[_ACC_T] += dt
     _rest_detection(state, params, gx, gy, gz, ax, ay, az, acc_ok, dt)
     state[_MAG_DT] += dt
-    if mag_ok and not (mx == state[_MAG_PREV] and my == state[_MAG_PREV + 1]
-                       and mz == state[_MAG_PREV + 2]):
-        # Only a new reading is a measurement: a magnetometer slower than the IMU is
-        # often repeated in every IMU message (RAW_IMU), and a repeat carries nothing.
-        state[_MAG], state[_MAG + 1], state[_MAG + 2] = mx, my, mz
-        state[_MAG_OK] = 1.0
     if mag_ok:
-        state[_MAG_PREV], state[_MAG_PREV + 1], state[_MAG_PREV + 2] = mx, my, mz
+        # A magnetometer slower than the IMU is often repeated in every IMU message
+        # (RAW_IMU): a repeat describes the body as it was when the reading was taken,
+        # so it is used only while the body has not turned since.
+        if mx == state[_MAG_PREV] and my == state[_MAG_PREV + 1] and mz == state[_MAG_PREV + 2]:
+            state[_MAG_TURN] += math.sqrt((gx - b0) ** 2 + (gy - b1) ** 2 + (gz - b2) ** 2) * dt
+        else:
+            state[_MAG_TURN] = 0.0
+            state[_MAG_PREV], state[_MAG_PREV + 1], state[_MAG_PREV + 2] = mx, my, mz
+        if state[_MAG_TURN] <= _MAG_STALE_RAD:
+            state[_MAG], state[_MAG + 1], state[_MAG + 2] = mx, my, mz
+            state[_MAG_OK] = 1.0
     if math.isfinite(vx) or math.isfinite(vy) or math.isfinite(vz):
         state[_PEND], state[_PEND + 1], state[_PEND + 2] = vx, vy, vz
         state[_PEND_AGE] = v_age
@@ -697,6 +741,7 @@ class Eskf(Estimator):
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"parameter {f!r} must be a finite number > 0, got {value!r}")
         for f in ("bias_rw", "velocity_rw", "drag", "mag_ref_time", "mag_new_time",
+                  "mag_reset_time",
                   "rest_time"):
             value = getattr(p, f)
             if not (math.isfinite(value) and value >= 0.0):
@@ -714,6 +759,11 @@ class Eskf(Estimator):
     def velocity(self) -> np.ndarray:
         """The filter's velocity [m/s], internal frame (magnetic NED)."""
         return self._state[_V:_V + 3].copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Covariance of the error state [δθ (world), δb, δv, δμ], 10×10."""
+        return self._state[_P:_P + _NX * _NX].reshape(_NX, _NX).copy()
 
     @property
     def drag_coefficient(self) -> float:

@@ -26,7 +26,7 @@ import numpy as np
 
 #: (TOML table, offset key, matrix key, dataclass offset field, dataclass matrix field)
 _SECTIONS = (
-    ("gyro", "offset", None, "gyro_offset", None),
+    ("gyro", "offset", "matrix", "gyro_offset", "gyro_matrix"),
     ("accel", "offset", "matrix", "accel_offset", "accel_matrix"),
     ("mag", "offset", "matrix", "mag_offset", "mag_matrix"),
 )
@@ -85,13 +85,15 @@ def _matrix(value: object, name: str) -> np.ndarray:
 class SensorCalibration:
     """Offsets and correction matrices, applied as ``M @ (raw - offset)`` (body FRD, SI).
 
-    ``gyro_offset`` [rad/s]; ``accel_offset`` [m/s^2] and ``accel_matrix``;
+    ``gyro_offset`` [rad/s] and ``gyro_matrix`` (scale and cross-axis; identity in files
+    written before it existed); ``accel_offset`` [m/s^2] and ``accel_matrix``;
     ``mag_offset`` (hard iron, in the unit of the magnetometer vectors: gauss for every
     built-in board profile) and ``mag_matrix`` (soft iron). Only the magnetometer's
     direction matters to the estimators, so its matrix's overall scale is free.
     """
 
     gyro_offset: np.ndarray = field(default_factory=_zeros)
+    gyro_matrix: np.ndarray = field(default_factory=_eye)
     accel_offset: np.ndarray = field(default_factory=_zeros)
     accel_matrix: np.ndarray = field(default_factory=_eye)
     mag_offset: np.ndarray = field(default_factory=_zeros)
@@ -102,20 +104,21 @@ class SensorCalibration:
             object.__setattr__(self, off, _vector(getattr(self, off), off))
             if mat is not None:
                 object.__setattr__(self, mat, _matrix(getattr(self, mat), mat))
-        for name in ("gyro_offset", "accel_offset", "accel_matrix", "mag_offset",
-                     "mag_matrix"):
+        for name in ("gyro_offset", "gyro_matrix", "accel_offset", "accel_matrix",
+                     "mag_offset", "mag_matrix"):
             getattr(self, name).setflags(write=False)
 
     @property
     def is_identity(self) -> bool:
         return (not self.gyro_offset.any() and not self.accel_offset.any()
-                and not self.mag_offset.any() and np.array_equal(self.accel_matrix, np.eye(3))
+                and not self.mag_offset.any() and np.array_equal(self.gyro_matrix, np.eye(3))
+                and np.array_equal(self.accel_matrix, np.eye(3))
                 and np.array_equal(self.mag_matrix, np.eye(3)))
 
     # --- applying ------------------------------------------------------------------
     def gyro(self, v: np.ndarray) -> np.ndarray:
         """Corrected rates for (..., 3) vectors."""
-        return np.asarray(v, dtype=float) - self.gyro_offset
+        return (np.asarray(v, dtype=float) - self.gyro_offset) @ self.gyro_matrix.T
 
     def accel(self, v: np.ndarray) -> np.ndarray:
         return (np.asarray(v, dtype=float) - self.accel_offset) @ self.accel_matrix.T
@@ -126,7 +129,7 @@ class SensorCalibration:
     def affine(self, sensor: str) -> tuple[np.ndarray, np.ndarray]:
         """(M, c) with ``corrected = M @ raw + c`` — for folding into other matrices."""
         if sensor == "gyro":
-            return np.eye(3), -self.gyro_offset
+            return self.gyro_matrix, -self.gyro_matrix @ self.gyro_offset
         if sensor == "accel":
             return self.accel_matrix, -self.accel_matrix @ self.accel_offset
         if sensor == "mag":
@@ -174,7 +177,7 @@ class SensorCalibration:
             raise ValueError(f"{p}: {exc}") from exc
 
     def to_toml(self, comment: str = "") -> str:
-        """The file text: ``[gyro] offset``, ``[accel]/[mag] offset`` and ``matrix``."""
+        """The file text: ``[gyro]``, ``[accel]``, ``[mag]``, each ``offset`` and ``matrix``."""
 
         def num(x: float) -> str:
             return repr(float(x)) if math.isfinite(x) else "nan"

@@ -1,17 +1,23 @@
 """Fitting a :class:`~imu.calibration.SensorCalibration` from recorded samples.
 
-Three independent fits, numpy least squares only:
+Four fits, numpy least squares only:
 
 * **gyro offset** — the mean rate over the longest stretch where the board is still;
-* **accelerometer** — at rest the accelerometer reads gravity, so the static poses'
-  mean readings lie on an ellipsoid; find offset b and symmetric M with
-  ``|M (a - b)| = G`` for every pose (Gauss-Newton on the norm residuals). Norms only
-  see the symmetric part of the sensor's error matrix; the small rotation left over is
-  a misalignment of a few tenths of a degree for percent-level cross-axis errors;
+* **accelerometer** — with all six faces among the static poses (the PX4/ArduPilot
+  procedure), offset and full matrix from ``M (a - b) = G e_i`` on the faces plus the
+  norm condition on the other poses (:mod:`imu.calibration_faces`; faces assumed
+  square on a level surface). Otherwise the poses' mean readings only lie on an
+  ellipsoid: offset b and symmetric M with ``|M (a - b)| = G`` (Gauss-Newton on the norm
+  residuals). Norms only see the symmetric part of the sensor's error matrix; the
+  rotation left over is a misalignment of a few tenths of a degree for percent-level
+  cross-axis errors, and the report says the full model was not possible;
 * **magnetometer** — the Earth's field has one strength, so the readings of a board
   turned through all orientations lie on an ellipsoid (hard iron = its centre, soft
   iron = its shape): an algebraic quadric fit, then ``M = r · A^(1/2)`` with r the mean
-  field strength, so corrected vectors keep the usual magnitude.
+  field strength, so corrected vectors keep the usual magnitude;
+* **gyro matrix** — scale and cross-axis errors from the turns between the static
+  poses, whose rotation the calibrated accelerometer and magnetometer know
+  (:mod:`imu.calibration_gyro`, Tedaldi et al. 2014); fitted last, on the other fits.
 
 Each fit refuses (ValueError saying why) data that cannot determine it — too few
 static poses, poses or field directions covering too little of the sphere — because a
@@ -20,12 +26,15 @@ calibration fitted to such data is confidently wrong, which is worse than none.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
 
 from .boards import G
 from .calibration import SensorCalibration
+from .calibration_faces import FACE_MAX_RESIDUAL_DEG, face_labels, fit_faces
+from .calibration_gyro import Turn, fit_gyro_matrix
 
 # --- still detection --------------------------------------------------------------
 BLOCK_S = 0.1  # samples are judged in blocks of this length
@@ -55,8 +64,15 @@ class FitReport:
     """What a fit saw and achieved, for the user to judge the calibration."""
 
     gyro_still_s: float = 0.0
+    gyro_turns: int = 0  # turns between poses the gyro matrix was fitted on (0: not)
+    gyro_weakest_rotation_deg: float = float("nan")  # rotation about the least-turned axis
+    gyro_turn_error_before_deg: float = float("nan")  # RMS direction error, identity M
+    gyro_turn_error_after_deg: float = float("nan")  # ... with the fitted M
     accel_poses: int = 0
-    accel_model: str = ""  # "symmetric" or "diagonal"
+    accel_faces: int = 0  # of the six face-down poses, how many were held
+    accel_model: str = ""  # "full", "symmetric" or "diagonal"
+    accel_face_residual_deg: float = float("nan")  # largest, full model only
+    accel_note: str = ""  # why not the full model
     accel_norm_std_before: float = float("nan")  # std of |a| over poses [m/s^2]
     accel_norm_std_after: float = float("nan")
     accel_norm_rms_error_before: float = float("nan")  # RMS of |a| - G [m/s^2]
@@ -70,12 +86,23 @@ class FitReport:
         out = []
         if self.gyro_still_s:
             out.append(f"gyro:  offset from {self.gyro_still_s:.1f} s still")
+        if self.gyro_turns:
+            out.append(f"gyro:  scale and cross-axis from {self.gyro_turns} turns between "
+                       f"poses (least-turned axis {self.gyro_weakest_rotation_deg:.0f}°); "
+                       f"turn error RMS {self.gyro_turn_error_before_deg:.3f}° -> "
+                       f"{self.gyro_turn_error_after_deg:.3f}°")
         if self.accel_poses:
-            out.append(f"accel: {self.accel_poses} static poses, {self.accel_model} model; "
+            out.append(f"accel: {self.accel_poses} static poses ({self.accel_faces} of 6 "
+                       f"faces), {self.accel_model} model; "
                        f"gravity norm std {self.accel_norm_std_before:.4f} -> "
                        f"{self.accel_norm_std_after:.4f} m/s^2, RMS |a|-G "
                        f"{self.accel_norm_rms_error_before:.4f} -> "
                        f"{self.accel_norm_rms_error_after:.4f} m/s^2")
+            if self.accel_model == "full":
+                out.append("accel: full matrix assumes each face was square on a level "
+                           f"surface; largest face residual {self.accel_face_residual_deg:.3f}°")
+            elif self.accel_note:
+                out.append(f"accel: no rotation correction ({self.accel_note})")
         if self.mag_samples:
             out.append(f"mag:   {self.mag_samples} readings, direction spread "
                        f"{self.mag_spread:.2f} (sphere 0.33); field norm relative std "
@@ -213,7 +240,12 @@ def fit_norm_ellipsoid(points: np.ndarray, radius: float, symmetric: bool,
 
 def fit_accelerometer(gyr: np.ndarray, acc: np.ndarray, rate_hz: float
                       ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """(offset, matrix, report fields) from the static poses in the samples."""
+    """(offset, matrix, report fields) from the static poses in the samples.
+
+    The full matrix (rotation included) when all six faces were held square and level;
+    else the norm-only fit (symmetric with ≥ 12 distinct poses, diagonal with 6-11),
+    with ``accel_note`` saying why.
+    """
     poses, _, _ = static_poses(gyr, acc, rate_hz)
     count = distinct_directions(poses, POSE_SEPARATION_DEG) if len(poses) else 0
     if count < MIN_POSES:
@@ -221,15 +253,32 @@ def fit_accelerometer(gyr: np.ndarray, acc: np.ndarray, rate_hz: float
                          f"{POSE_SEPARATION_DEG:g}° apart, each held still "
                          f"{MIN_POSE_S:g} s), need {MIN_POSES}; hold the board still on "
                          "each face (and ideally on edges and corners) in turn")
-    symmetric = count >= MIN_POSES_FULL
-    b, m, cond = fit_norm_ellipsoid(poses, G, symmetric)
-    if cond > MAX_JACOBIAN_CONDITION:
-        raise ValueError(f"accelerometer: the {count} static poses do not cover enough "
-                         f"orientations to determine offset and scale (condition "
-                         f"{cond:.3g}); add poses with gravity along the other axes")
+    labels = face_labels(poses)
+    faces = len(set(labels[labels >= 0].tolist()))
+    model, note, worst = "", "", float("nan")
+    if faces == 6:
+        b, m, worst, cond = fit_faces(poses, labels, G)
+        if cond > MAX_JACOBIAN_CONDITION:
+            note = f"the face fit is ill-conditioned ({cond:.3g})"
+        elif worst > FACE_MAX_RESIDUAL_DEG:
+            note = (f"a face was not square and level: face residual {worst:.2f}° > "
+                    f"{FACE_MAX_RESIDUAL_DEG:g}°")
+        else:
+            model = "full"
+    else:
+        note = f"only {faces} of the 6 faces held still face-down"
+    if not model:
+        model = "symmetric" if count >= MIN_POSES_FULL else "diagonal"
+        b, m, cond = fit_norm_ellipsoid(poses, G, model == "symmetric")
+        if cond > MAX_JACOBIAN_CONDITION:
+            raise ValueError(f"accelerometer: the {count} static poses do not cover enough "
+                             f"orientations to determine offset and scale (condition "
+                             f"{cond:.3g}); add poses with gravity along the other axes")
     before = np.linalg.norm(poses, axis=1)
     after = np.linalg.norm((poses - b) @ m.T, axis=1)
-    report = {"accel_poses": count, "accel_model": "symmetric" if symmetric else "diagonal",
+    report = {"accel_poses": count, "accel_faces": faces, "accel_model": model,
+              "accel_face_residual_deg": worst if model == "full" else float("nan"),
+              "accel_note": note,
               "accel_norm_std_before": float(before.std()),
               "accel_norm_std_after": float(after.std()),
               "accel_norm_rms_error_before": float(np.sqrt(np.mean((before - G) ** 2))),
@@ -314,12 +363,62 @@ def fit_magnetometer(mag: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
     return offset, matrix, report
 
 
+# --- gyro matrix ------------------------------------------------------------------
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def pose_turns(gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None, rate_hz: float,
+               cal: SensorCalibration) -> list[Turn]:
+    """The turns between consecutive static poses, for :func:`fit_gyro_matrix`.
+
+    Each runs from the middle of one pose to the middle of the next, so a slow creep
+    within a pose is integrated as well as seen in the pose's mean directions. The gyro
+    offset is each pose's mean rate, interpolated in time between the two poses (it
+    wanders); the references are the calibrated gravity and (when ``mag`` is given)
+    field directions. Turns with missing samples (a gap between pooled logs) are left out.
+    """
+    g = np.asarray(gyr, float)
+    _, runs, n = static_poses(gyr, acc, rate_hz)
+    _, g_mean, a_mean, _ = still_blocks(gyr, acc, rate_hz)
+    turns = []
+    for (s0, e0), (s1, e1) in itertools.pairwise(runs):
+        start, stop = (s0 + e0) * n // 2, (s1 + e1) * n // 2
+        b0, b1 = g_mean[s0:e0].mean(axis=0), g_mean[s1:e1].mean(axis=0)
+        frac = (np.arange(stop - start) + 0.5) / (stop - start)
+        rates = g[start:stop] - (b0 + frac[:, None] * (b1 - b0))
+        if not np.all(np.isfinite(rates)):
+            continue
+        refs, weight = [], np.ones(2)
+        for s, e in ((s0, e0), (s1, e1)):
+            field = np.full(3, np.nan)
+            if mag is not None:  # skip the first block: it may hold a reading taken moving
+                m = mag[(s + 1) * n:e * n]
+                m = m[np.all(np.isfinite(m), axis=1)]
+                if len(m):
+                    field = cal.mag(m.mean(axis=0))
+            refs.append((_unit(cal.accel(a_mean[s:e].mean(axis=0))), field))
+        if not np.all(np.isfinite(refs[0][1])) or not np.all(np.isfinite(refs[1][1])):
+            weight[1] = 0.0
+            refs = [(a, np.zeros(3)) for a, _ in refs]
+        else:
+            refs = [(a, _unit(f)) for a, f in refs]
+        turns.append(Turn(rates, np.stack(refs[0]), np.stack(refs[1]), weight))
+    return turns
+
+
 # --- all together -------------------------------------------------------------------
 
 def fit_calibration(gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None,
                     rate_hz: float, gyro: bool = True, accel: bool = True,
-                    magnetometer: bool = True) -> tuple[SensorCalibration, FitReport]:
-    """Fit the requested parts (the others stay identity); ValueError if one cannot be."""
+                    magnetometer: bool = True, gyro_matrix: bool = True
+                    ) -> tuple[SensorCalibration, FitReport]:
+    """Fit the requested parts (the others stay identity); ValueError if one cannot be.
+
+    The gyro matrix (needs ``gyro``) is fitted last, on the turns between poses as the
+    fitted accelerometer and magnetometer see them (gravity only without ``magnetometer``).
+    """
     values: dict[str, np.ndarray] = {}
     report: dict = {}
     if gyro:
@@ -333,5 +432,10 @@ def fit_calibration(gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None,
             raise ValueError("magnetometer: the samples have no magnetometer readings "
                              "(skip it with --no-mag)")
         values["mag_offset"], values["mag_matrix"], r = fit_magnetometer(mag)
+        report.update(r)
+    if gyro and gyro_matrix:
+        turns = pose_turns(gyr, acc, mag if magnetometer else None, rate_hz,
+                           SensorCalibration(**values))
+        values["gyro_matrix"], r = fit_gyro_matrix(turns, rate_hz)
         report.update(r)
     return SensorCalibration(**values), FitReport(**report)

@@ -123,6 +123,8 @@ class Recording:
     when: _dt.datetime | None = None  # when it was recorded (UTC), for the WMM
     when_source: str = ""
     velocity: Velocity | None = None
+    mav_type: int | None = None  # MAVLink MAV_TYPE of the vehicle, None when unknown
+    mav_type_source: str = ""  # where it came from (HEARTBEAT, parameter MAV_TYPE)
 
     def __post_init__(self) -> None:
         n = self.t.shape[0]

@@ -12,7 +12,9 @@ import numpy as np
 import estimators
 from estimators import metrics
 from estimators import quat as Q
+from estimators.eskf import MULTIROTOR_DRAG_PER_S
 from estimators.spec import EstimatorSpec
+from imu.vehicles import is_multirotor, type_name
 
 from .align import DEFAULT_MAX_GAP_S, measure_lag, reference_at
 from .dataset import Recording, ReplayInputError
@@ -70,6 +72,24 @@ def prepare(rec: Recording, method: str = "slerp", max_gap: float = DEFAULT_MAX_
         if r.t.size and rec.score_mask is not None:
             why = f"no sample with a reference inside the file's score mask; {why}"
     return Prepared(rec, q_ref, scored, dec, aid, aid_note, why)
+
+
+def vehicle_params(rec: Recording, name: str) -> dict[str, float]:
+    """Estimator parameters the vehicle's kind implies: a multirotor runs eskf's rotor-drag
+    model (its accelerometer sees thrust, not gravity, whenever it accelerates)."""
+    known = estimators.estimator_class(name).param_names()
+    if is_multirotor(rec.mav_type) and "drag" in known:
+        return {"drag": MULTIROTOR_DRAG_PER_S}
+    return {}
+
+
+def vehicle_note(rec: Recording) -> str:
+    kind = type_name(rec.mav_type)
+    if rec.mav_type is None:
+        return "unknown (no HEARTBEAT or MAV_TYPE in the log): no vehicle model"
+    model = "eskf runs its multirotor drag model" if is_multirotor(rec.mav_type) else \
+        "no vehicle model"
+    return f"{kind} ({rec.mav_type_source}): {model}"
 
 
 def estimators_take_velocity() -> bool:
@@ -135,7 +155,8 @@ def run_estimator(prep: Prepared, spec: EstimatorSpec, init: str = "sensors") ->
         q0 = prep.q_ref[start]
     elif init != "sensors":
         raise ValueError(f"init must be 'sensors' or 'reference', got {init!r}")
-    params = {"declination": prep.declination.rad, **spec.params}  # -e ...:declination= wins
+    params = {"declination": prep.declination.rad, **vehicle_params(rec, spec.name),
+              **spec.params}  # -e ...:declination=, :drag= win
     est = estimators.create(spec.name, rate_hz=rec.rate_hz, world=rec.world, q0=q0, **params)
     sl = slice(start, None)
     began = time.perf_counter()
@@ -317,6 +338,7 @@ class Evaluation:
             "declination_source": self.prepared.declination.source,
             "aiding": self.prepared.aid,
             "aiding_note": self.prepared.aid_note,
+            "vehicle": vehicle_note(self.prepared.recording),
             "not_scored": self.prepared.unscored or None,
             "not_run": self.not_run or None,
             "estimators": {label: s.as_json() for label, s in self.scores.items()},

@@ -22,7 +22,7 @@ import numpy as np
 import estimators
 from estimators import _core, metrics
 
-from .evaluate import Evaluation
+from .evaluate import Evaluation, vehicle_note
 from .plotdata import decimation, plot_angles
 from .summary import COLUMNS
 
@@ -84,6 +84,7 @@ def _info_html(ev: Evaluation) -> str:
                                                             else "")),
         ("declination used", prep.declination.describe()),
         ("aiding", prep.aid_note),
+        ("vehicle", vehicle_note(prep.recording)),
         ("board profile", rec.board or "not applicable (SI units in the log)"),
         ("attitude-bridge", product_version()),
     ]

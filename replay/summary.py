@@ -11,7 +11,7 @@ import math
 import sys
 from typing import TextIO
 
-from .evaluate import Evaluation
+from .evaluate import Evaluation, vehicle_note
 
 #: (Score field, header, scale, format)
 COLUMNS = (("total_deg", "total°", 1.0, "{:.3f}"), ("heading_deg", "heading°", 1.0, "{:.3f}"),
@@ -33,6 +33,7 @@ def header_lines(ev: Evaluation) -> list[str]:
         lines.append(f"  reference:   {ref.kind} ({ref.source}, {ref.north} north{timing})")
     lines.append(f"  declination: {prep.declination.describe()}")
     lines.append(f"  aiding:      {prep.aid_note}")
+    lines.append(f"  vehicle:     {vehicle_note(prep.recording)}")
     lines += [f"  note: {n}" for n in rec.notes]
     if rec.cleanup.dropped:
         lines.append(f"  note: dropped IMU samples: {rec.cleanup}")

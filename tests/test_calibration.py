@@ -24,9 +24,13 @@ RATE = 200.0
 ACC_ERROR = np.array([[1.03, 0.012, -0.008], [0.012, 0.97, 0.015], [-0.008, 0.015, 1.02]])
 ACC_OFFSET = np.array([0.35, -0.22, 0.48])  # m/s^2 (36, 22, 49 mg)
 GYRO_OFFSET = np.array([0.021, -0.013, 0.007])  # rad/s
+#: Gyro scale and cross-axis errors: not symmetric (a rotation part too).
+GYRO_ERROR = np.array([[1.012, 0.006, -0.004], [-0.005, 0.991, 0.007],
+                       [0.003, -0.008, 1.009]])
 SOFT_IRON = np.array([[1.10, 0.05, -0.03], [0.05, 0.92, 0.04], [-0.03, 0.04, 1.01]])
 HARD_IRON = np.array([0.12, -0.07, 0.2])  # gauss
 FIELD = 0.5  # gauss
+DIP_DEG = 60.0
 
 
 def fibonacci_directions(n: int) -> np.ndarray:
@@ -38,39 +42,57 @@ def fibonacci_directions(n: int) -> np.ndarray:
     return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
 
 
+def pose_attitude(down: np.ndarray, heading: float) -> np.ndarray:
+    """Quaternion (body -> NED) of a board whose body sees gravity along ``down``."""
+    cross = np.cross([0.0, 0.0, 1.0], down)
+    if np.linalg.norm(cross) < 1e-9:  # already along ±z: none, or half a turn about x
+        tilt = np.zeros(3) if down[2] > 0 else np.array([math.pi, 0.0, 0.0])
+    else:
+        tilt = cross / np.linalg.norm(cross) * math.atan2(np.linalg.norm(cross), down[2])
+    return Q.multiply(Q.from_rotvec(np.array([0.0, 0.0, heading])),
+                      Q.conjugate(Q.from_rotvec(tilt)))
+
+
+def smoothstep(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Quintic 0 -> 1 and its derivative (zero rate and acceleration at both ends)."""
+    return u**3 * (10 - 15 * u + 6 * u**2), 30 * u**2 * (1 - u) ** 2
+
+
 def synthetic_session(gravity_dirs: np.ndarray, rng: np.random.Generator,
-                      hold_s: float = 1.5, move_s: float = 0.6
+                      hold_s: float = 1.5, move_s: float = 0.6,
+                      acc_error: np.ndarray = ACC_ERROR, heading_step_deg: float = 60.0
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(gyr, acc, mag) of a board held still in each direction, turned in between.
 
-    The field direction follows gravity's at a fixed angle (a real dip) but rotated
-    about it per pose, so the magnetometer sees many directions.
+    Physically consistent, as the gyro matrix fit needs: each pose has its own heading
+    (``heading_step_deg`` apart), so the field (FIELD at DIP_DEG) points in many body directions;
+    between poses the board turns about one fixed body axis along a quintic, and the
+    gyro reads that turn through GYRO_ERROR; the hand's shake shows in the accelerometer.
     """
-    gyr, acc, mag = [], [], []
-    n_hold, n_move = round(hold_s * RATE), round(move_s * RATE)
     dirs = gravity_dirs / np.linalg.norm(gravity_dirs, axis=1, keepdims=True)
-    for i, d in enumerate(dirs):
-        f_true = -G * d  # specific force at rest points away from gravity
-        a_meas = f_true @ ACC_ERROR.T + ACC_OFFSET
-        acc.append(a_meas + rng.normal(0, 0.02, (n_hold, 3)))
-        gyr.append(GYRO_OFFSET + rng.normal(0, 0.002, (n_hold, 3)))
-        # Field: fresh random directions while moving, one fixed one while held.
-        b_hold = fibonacci_directions(len(dirs))[(7 * i) % len(dirs)] * FIELD
-        b_move = rng.normal(size=(n_move, 3))
-        b_move = b_move / np.linalg.norm(b_move, axis=1, keepdims=True) * FIELD
-        mag.append(np.repeat(b_hold[None], n_hold, axis=0))
-        mag.append(b_move)
-        if i + 1 < len(dirs):  # the turn to the next pose: rate and moving gravity
-            u = np.linspace(0, 1, n_move)[:, None]
-            f_move = -G * ((1 - u) * d + u * dirs[i + 1])
-            acc.append(f_move @ ACC_ERROR.T + ACC_OFFSET + rng.normal(0, 0.3, (n_move, 3)))
-            gyr.append(GYRO_OFFSET + np.array([1.5, -0.8, 0.4]) + rng.normal(0, 0.05,
-                                                                            (n_move, 3)))
-        else:
-            mag.pop()
-    mag_true = np.concatenate(mag)
-    mag_meas = mag_true @ SOFT_IRON.T + HARD_IRON + rng.normal(0, 0.002, mag_true.shape)
-    return np.concatenate(gyr), np.concatenate(acc), mag_meas
+    dip = math.radians(DIP_DEG)
+    field = FIELD * np.array([math.cos(dip), 0.0, math.sin(dip)])
+    poses = [pose_attitude(d, math.radians(heading_step_deg * i)) for i, d in enumerate(dirs)]
+    n_hold, n_move = round(hold_s * RATE), round(move_s * RATE)
+    u, du = smoothstep(np.arange(n_move) / n_move)
+    q_parts, rate_parts, shake = [], [], []
+    for i, q in enumerate(poses):
+        q_parts.append(np.repeat(q[None], n_hold, axis=0))
+        rate_parts.append(np.zeros((n_hold, 3)))
+        shake.append(np.full(n_hold, 0.02))
+        if i + 1 < len(poses):
+            turn = Q.to_rotvec(Q.multiply(Q.conjugate(q), poses[i + 1]))
+            q_parts.append(Q.multiply(q, Q.from_rotvec(u[:, None] * turn)))
+            rate_parts.append(du[:, None] * turn / move_s)
+            shake.append(np.full(n_move, 0.3))
+    q_all, rates = np.concatenate(q_parts), np.concatenate(rate_parts)
+    sigma = np.concatenate(shake)[:, None]
+    f_true = Q.rotate(Q.conjugate(q_all), np.array([0.0, 0.0, -G]))  # at rest: away from g
+    acc = f_true @ acc_error.T + ACC_OFFSET + rng.normal(0, 1.0, f_true.shape) * sigma
+    gyr = rates @ GYRO_ERROR.T + GYRO_OFFSET + rng.normal(0, 0.002, rates.shape)
+    mag_true = Q.rotate(Q.conjugate(q_all), field)
+    mag = mag_true @ SOFT_IRON.T + HARD_IRON + rng.normal(0, 0.002, mag_true.shape)
+    return gyr, acc, mag
 
 
 @pytest.fixture(scope="module")
@@ -91,6 +113,95 @@ def test_fit_recovers_known_accelerometer_and_gyro_errors(synthetic):
     np.testing.assert_allclose(cal.accel_matrix @ ACC_ERROR, np.eye(3), atol=2e-3)
     assert report.accel_norm_std_after < report.accel_norm_std_before / 20
     assert report.accel_norm_rms_error_after < 0.01
+
+
+def test_fit_recovers_gyro_scale_and_cross_axis_from_the_turns(synthetic):
+    gyr, acc, mag = synthetic
+    cal, report = fit_calibration(gyr, acc, mag, RATE)
+    # The accelerometer frame is the body frame here (symmetric error), so the fitted
+    # gyro correction must undo GYRO_ERROR, rotation part included, to 0.1 %.
+    np.testing.assert_allclose(cal.gyro_matrix @ GYRO_ERROR, np.eye(3), atol=1e-3)
+    assert report.gyro_turns == 15
+    assert report.gyro_turn_error_before_deg > 0.5
+    assert report.gyro_turn_error_after_deg < 0.05
+    # Applied everywhere the offset is: cal.gyro, and the affine map ingest folds in.
+    raw = np.array([[0.3, -1.2, 2.0]])
+    np.testing.assert_allclose(cal.gyro(raw)[0], cal.gyro_matrix @ (raw[0] - GYRO_OFFSET),
+                               atol=1e-3)
+    m, c = cal.affine("gyro")
+    np.testing.assert_allclose(m @ raw[0] + c, cal.gyro(raw)[0], atol=1e-12)
+
+
+#: Six faces and eight corners; an error matrix with a rotation part, which no norm can see.
+CORNERS = np.array([(i, j, k) for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
+SIX_FACES_AND_CORNERS = np.vstack([np.eye(3), -np.eye(3), CORNERS])
+ACC_ERROR_ROTATED = np.array([[1.03, 0.018, -0.004], [0.006, 0.97, 0.021],
+                              [-0.012, 0.009, 1.02]])
+
+
+def misalignment_deg(m: np.ndarray) -> float:
+    """Angle of the rotation in m (its orthogonal polar factor)."""
+    u, _, vt = np.linalg.svd(m)
+    return float(np.degrees(np.arccos(np.clip((np.trace(u @ vt) - 1) / 2, -1, 1))))
+
+
+def test_six_faces_give_the_full_accelerometer_matrix():
+    gyr, acc, mag = synthetic_session(SIX_FACES_AND_CORNERS, np.random.default_rng(11),
+                                      acc_error=ACC_ERROR_ROTATED)
+    cal, report = fit_calibration(gyr, acc, mag, RATE)
+    assert (report.accel_model, report.accel_faces) == ("full", 6)
+    assert report.accel_face_residual_deg < 0.05
+    assert misalignment_deg(ACC_ERROR_ROTATED) > 0.4  # what the symmetric fit would leave
+    assert misalignment_deg(cal.accel_matrix @ ACC_ERROR_ROTATED) < 0.02
+    np.testing.assert_allclose(cal.accel_matrix @ ACC_ERROR_ROTATED, np.eye(3), atol=5e-4)
+    np.testing.assert_allclose(cal.accel_offset, ACC_OFFSET, atol=0.005)
+    # The gyro is fitted in the corrected accelerometer's frame, i.e. the body's.
+    np.testing.assert_allclose(cal.gyro_matrix @ GYRO_ERROR, np.eye(3), atol=1e-3)
+    assert any("square on a level surface" in line for line in report.lines())
+
+
+def test_without_six_square_faces_the_accelerometer_falls_back_and_says_so():
+    # One face missing: the symmetric (norm-only) fit, with the reason in the report.
+    five = np.delete(SIX_FACES_AND_CORNERS, 5, axis=0)  # no -z face
+    gyr, acc, mag = synthetic_session(five, np.random.default_rng(12),
+                                      acc_error=ACC_ERROR_ROTATED)
+    cal, report = fit_calibration(gyr, acc, mag, RATE)
+    assert (report.accel_model, report.accel_faces) == ("symmetric", 5)
+    assert "accel: no rotation correction (only 5 of the 6 faces" in "\n".join(report.lines())
+    assert misalignment_deg(cal.accel_matrix @ ACC_ERROR_ROTATED) > 0.4  # rotation stays
+    assert report.accel_norm_rms_error_after < 0.01  # but the norms are right
+    # A face tilted 1.5° (not square on the table): the face fit would carry the tilt.
+    tilted = SIX_FACES_AND_CORNERS.copy()
+    tilted[2] = [math.sin(math.radians(1.5)), 0.0, math.cos(math.radians(1.5))]
+    gyr, acc, mag = synthetic_session(tilted, np.random.default_rng(13),
+                                      acc_error=ACC_ERROR_ROTATED)
+    _, report = fit_calibration(gyr, acc, mag, RATE)
+    assert (report.accel_model, report.accel_faces) == ("symmetric", 6)
+    assert "not square and level" in report.accel_note
+
+
+def test_turns_about_one_axis_only_refuse_the_gyro_matrix():
+    """Gravity only ever in the y-z plane and no change of heading: every turn is about
+    body x, so the gyro's y and z columns are never seen."""
+    angles = np.radians(np.arange(0, 360, 40))
+    dirs = np.column_stack([np.zeros_like(angles), np.sin(angles), np.cos(angles)])
+    gyr, acc, mag = synthetic_session(dirs, np.random.default_rng(14), heading_step_deg=0.0)
+    with pytest.raises(ValueError, match="do not excite all axes"):
+        fit_calibration(gyr, acc, mag, RATE, accel=False, magnetometer=False)
+    cal, report = fit_calibration(gyr, acc, mag, RATE, accel=False, magnetometer=False,
+                                  gyro_matrix=False)  # the offset alone is still fine
+    assert report.gyro_turns == 0 and np.array_equal(cal.gyro_matrix, np.eye(3))
+    np.testing.assert_allclose(cal.gyro_offset, GYRO_OFFSET, atol=5e-4)
+
+
+def test_a_gyro_that_cannot_reproduce_the_turns_is_refused(synthetic):
+    """Samples lost during one turn: no matrix explains it, so none is written."""
+    gyr, acc, mag = synthetic
+    gyr = gyr.copy()
+    first_turn = slice(round(1.5 * RATE), round(2.1 * RATE))
+    gyr[first_turn] = GYRO_OFFSET
+    with pytest.raises(ValueError, match="even the best matrix leaves the turns"):
+        fit_calibration(gyr, acc, mag, RATE)
 
 
 def test_fit_recovers_known_hard_and_soft_iron(synthetic):
@@ -163,7 +274,8 @@ def test_no_still_stretch_refuses_the_gyro_offset():
 # --- the file format -----------------------------------------------------------------
 
 def known_calibration() -> SensorCalibration:
-    return SensorCalibration(gyro_offset=GYRO_OFFSET, accel_offset=ACC_OFFSET,
+    return SensorCalibration(gyro_offset=GYRO_OFFSET, gyro_matrix=np.linalg.inv(GYRO_ERROR),
+                             accel_offset=ACC_OFFSET,
                              accel_matrix=np.linalg.inv(ACC_ERROR), mag_offset=HARD_IRON,
                              mag_matrix=np.linalg.inv(SOFT_IRON))
 
@@ -173,7 +285,8 @@ def test_toml_round_trip_is_exact(tmp_path):
     path = tmp_path / "calib.toml"
     cal.save(path, comment="test\nsecond line")
     back = SensorCalibration.load(path)
-    for name in ("gyro_offset", "accel_offset", "accel_matrix", "mag_offset", "mag_matrix"):
+    for name in ("gyro_offset", "gyro_matrix", "accel_offset", "accel_matrix", "mag_offset",
+                 "mag_matrix"):
         np.testing.assert_array_equal(getattr(back, name), getattr(cal, name))
     assert SensorCalibration().is_identity and not back.is_identity
     # Tables may be left out: they stay identity.
@@ -181,6 +294,21 @@ def test_toml_round_trip_is_exact(tmp_path):
     partial = SensorCalibration.load(path)
     assert partial.gyro_offset.tolist() == [0.1, 0, 0]
     assert partial.accel_matrix.tolist() == np.eye(3).tolist()
+    assert partial.gyro_matrix.tolist() == np.eye(3).tolist()
+
+
+def test_files_written_before_the_gyro_matrix_still_load(tmp_path):
+    """The format before ``[gyro] matrix`` existed: the gyro matrix is the identity."""
+    path = tmp_path / "old.toml"
+    path.write_text("[gyro]\noffset = [0.01, -0.02, 0.003]\n\n[accel]\n"
+                    "offset = [0.1, 0.2, 0.3]\nmatrix = [[1.01, 0.0, 0.0], [0.0, 0.99, 0.0], "
+                    "[0.0, 0.0, 1.0]]\n\n[mag]\noffset = [0.0, 0.0, 0.0]\n"
+                    "matrix = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]\n")
+    cal = SensorCalibration.load(path)
+    assert cal.gyro_matrix.tolist() == np.eye(3).tolist()
+    raw = np.array([0.5, 0.5, 0.5])
+    np.testing.assert_array_equal(cal.gyro(raw), raw - cal.gyro_offset)
+    assert "[gyro]\noffset = [0.01, -0.02, 0.003]\nmatrix = [" in cal.to_toml()
 
 
 @pytest.mark.parametrize("text, message", [
@@ -294,6 +422,13 @@ def test_calibrate_command_fits_a_csv_log_and_refuses_a_poor_one(tmp_path, synth
     cal = SensorCalibration.load(out)
     np.testing.assert_allclose(cal.accel_offset, ACC_OFFSET, atol=0.01)
     np.testing.assert_allclose(cal.mag_offset, HARD_IRON, atol=2e-3)
+    assert "scale and cross-axis from 15 turns" in printed
+    np.testing.assert_allclose(cal.gyro_matrix @ GYRO_ERROR, np.eye(3), atol=1e-3)
+    assert cli_main(["calibrate", str(log), "-o", str(out), "--no-gyro-matrix"]) == 0
+    assert "scale and cross-axis" not in capsys.readouterr().out
+    offset_only = SensorCalibration.load(out)
+    assert np.array_equal(offset_only.gyro_matrix, np.eye(3))
+    np.testing.assert_array_equal(offset_only.gyro_offset, cal.gyro_offset)
     # With a mounting rotation the fit is in body axes: offsets turn with it.
     assert cli_main(["calibrate", str(log), "-o", str(out), "--rotation", "ROLL_180"]) == 0
     np.testing.assert_allclose(SensorCalibration.load(out).accel_offset,

@@ -54,14 +54,13 @@ def test_constant_gyro_bias_is_learned_at_rest(rate):
     """Static, noisy gyro with bias b: after 10 s |b̂ − b| < 0.01 °/s per axis.
 
     Where the tolerance comes from (defaults rest_time 1.5 s, rest_tau 0.5 s): rest is
-    recognised after 1.5 s; from then the Kalman filter averages the low-passed gyro
-    with weights that quickly dwarf the 0.5 °/s prior (posterior σ ≈ 0.03/√8.5 °/s,
-    prior weight (σ/0.5)² < 1e-3). The white noise, 0.1 °/s per sample averaged over
-    ≥ 850 samples at 100 Hz, leaves ≤ 0.0035 °/s at 1σ; 3σ is 0.0105, and the
-    measured residual is ≤ 0.004 at 100 Hz (≤ 0.001 at 8 kHz): 0.01 holds with margin.
-    Attitude: before the bias is known (1.5 s) it drifts by ~0.75° and the
-    loops remove that with tau_acc = 3 s and tau_mag = 12 s; at 30 s the remainder is
-    ~1.5°·e^(−27/12) ≈ 0.16° in heading, far less in inclination.
+    recognised after 1.5 s; from then the low-passed gyro is a bias measurement with
+    noise density 0.03 °/s·√s, whose weight soon dwarfs the 0.5 °/s prior. The white
+    noise, 0.1 °/s per sample averaged over ≥ 850 samples at 100 Hz, leaves ≤ 0.0035 °/s
+    at 1σ; 3σ is 0.0105, and the measured residual is 0.004 at 100 Hz (0.001 at 8 kHz).
+    Attitude: before the bias is known (1.5 s) the heading drifts by ~0.6° and the
+    magnetometer removes that with a time constant of tens of seconds; measured at 30 s
+    0.10° (100 Hz) / 0.23° (8 kHz) in heading, ≤ 0.02° in inclination.
     """
     rng = np.random.default_rng(1)
     truth = _static(TILT, 30.0, rate)
@@ -75,12 +74,13 @@ def test_constant_gyro_bias_is_learned_at_rest(rate):
     assert heading < 0.3 and incl < 0.05
 
 
-def test_bias_is_learned_in_motion_from_the_correction_loop():
-    """Never at rest (continuous tumbling at up to 35 °/s): the inclination loop's
-    correction rates drive the bias filter; tumbling makes all three axes observable.
-    From 0.4 °/s per axis the residual after 120 s is below 0.1 °/s per axis (measured
-    0.034), and the inclination error over the last minute is less than half of what it
-    is with the motion updates (inclination and heading loops) switched off."""
+def test_bias_is_learned_in_motion_from_the_velocity():
+    """Never at rest (continuous tumbling at up to 35 °/s): a bias error tilts the
+    estimate, the tilt makes the integrated velocity drift, and the bounded-velocity
+    prior sees the drift; tumbling makes all three axes observable. From 0.4 °/s per axis
+    the residual after 120 s is below 0.1 °/s per axis (measured ≤ 0.025), and the
+    inclination error over the last minute is less than a tenth of the filter's with the
+    velocity and magnetometer information switched off (measured 0.27° against 4.3°)."""
     rate, seconds = 100.0, 120.0
     n = int(rate * seconds)
     t = np.arange(n) / rate
@@ -95,21 +95,21 @@ def test_bias_is_learned_in_motion_from_the_correction_loop():
     bias = np.array([0.4, -0.4, 0.4]) * DEG
     gyr = np.vstack([w[1:], w[-1:]]) + bias
     res = estimators.run("eskf", gyr, acc, mag, rate_hz=rate)
-    off = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, bias_sigma_motion=100.0,
-                         bias_sigma_mag=100.0)
+    off = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, velocity_prior=1e6,
+                         mag_noise=1e6)
     residual = np.abs(res.bias[-1] - bias)
     assert np.all(residual < 0.1 * DEG), np.degrees(residual)
     assert np.all(np.abs(off.bias[-1] - bias) > 0.39 * DEG)  # really never at rest
     last = slice(int(60 * rate), n)
     rms_on = np.sqrt(np.mean(_errors_deg(res.q[last], truth[last])[1] ** 2))
     rms_off = np.sqrt(np.mean(_errors_deg(off.q[last], truth[last])[1] ** 2))
-    assert rms_on < 0.5 * rms_off, (rms_on, rms_off)
+    assert rms_on < 0.1 * rms_off, (rms_on, rms_off)
 
 
 def _world_vertical_turn(seconds: float, rate: float):
-    """Tilted body turning at 20 °/s about the world vertical: the inclination loop sees
-    only the horizontal bias components, the bias along the (fixed) body-frame vertical
-    shows only in the heading. Returns truth, body rate, body-frame vertical unit vector."""
+    """Tilted body turning at 20 °/s about the world vertical: the velocity sees only the
+    horizontal bias components, the bias along the (fixed) body-frame vertical shows only
+    in the heading. Returns truth, body rate, body-frame vertical unit vector."""
     n = int(seconds * rate)
     t = np.arange(n) / rate
     yaw_rate = np.array([0.0, 0.0, 20.0 * DEG])
@@ -120,70 +120,66 @@ def _world_vertical_turn(seconds: float, rate: float):
 
 
 def test_vertical_gyro_bias_is_learned_in_motion_from_the_magnetometer():
-    """Never at rest, 1 °/s bias along the world vertical: only the heading loop sees it.
-    Without the heading -> bias update the heading error settles at b·tau_mag ≈ 12°
-    (measured 11.9°); with it the bias is learned (residual measured 0.007 °/s after
-    60 s, bound 0.05) and the heading error of the last 10 s is below 1°."""
+    """Never at rest, 1 °/s bias along the world vertical: only the heading innovations
+    see it, and the Kalman gain's bias rows learn it (residual measured 0.02 °/s after
+    60 s, bound 0.05); the heading error of the last 10 s stays below 1° (measured 0.69°)
+    while the same filter with a bias-free model (bias_init ~ 0) is off by far more."""
     rate = 100.0
     truth, body_rate, vertical = _world_vertical_turn(60.0, rate)
     acc, mag = _sensors(truth)
     bias = 1.0 * DEG * vertical
     gyr = np.tile(body_rate + bias, (len(truth), 1))
     res = estimators.run("eskf", gyr, acc, mag, rate_hz=rate)
-    off = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, bias_sigma_mag=100.0)
+    fixed = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, bias_init=1e-9, bias_rw=0.0)
     assert np.all(np.abs(res.bias[-1] - bias) < 0.05 * DEG), np.degrees(res.bias[-1] - bias)
     last = slice(int(50 * rate), None)
     assert _errors_deg(res.q[last], truth[last])[0].max() < 1.0
-    assert _errors_deg(off.q[last], truth[last])[0].max() > 10.0
+    assert _errors_deg(fixed.q[last], truth[last])[0].max() > 5.0
 
 
-def test_vertical_bias_step_is_recovered():
-    """A 5 °/s bias step along the vertical at 30 s (an MPU6050 offset jump; bias_max is
-    20 °/s so it is not clipped). Detected after ~4 s, then followed (raised bias random
-    walk, faster loops): the bias is within 1 °/s after 10 s (measured 0.32 °/s) and the
-    heading error under 2° from 15 s on (measured 0.88°; peak 19.4°). Without step
-    following (hold ~0) the heading error is still ~29° at 15 s (the heading loop alone
-    answers with tau_mag = 12 s). Horizontal bias components move < 0.2 °/s (measured
-    0.11: following raises the random walk on every axis)."""
+def test_vertical_bias_step_is_followed_when_the_board_is_known_to_jump():
+    """A 5 °/s bias step along the vertical at 30 s (an MPU6050 offset jump; not clipped
+    at bias_max 20 °/s). The default bias random walk (1e-4 rad/s/√s, right for every real
+    recording we have) follows it slowly: the heading error is still > 20° at 45 s
+    (measured 34°). A board known to jump is run with a faster random walk, bias_rw =
+    0.01 rad/s/√s: bias within 1 °/s of the new value after 10 s (measured 0.6), heading
+    error under 2° from 15 s after the step on (measured 0.7°), while the horizontal bias
+    components stay within 0.2 °/s."""
     rate = 100.0
     truth, body_rate, vertical = _world_vertical_turn(60.0, rate)
     acc, mag = _sensors(truth)
     step = int(30 * rate)
     gyr = np.tile(body_rate + 1.0 * DEG * vertical, (len(truth), 1))
     gyr[step:] += 5.0 * DEG * vertical
-    res = estimators.run("eskf", gyr, acc, mag, rate_hz=rate)
-    slow = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, bias_step_hold=1e-9)
+    slow = estimators.run("eskf", gyr, acc, mag, rate_hz=rate)
+    res = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, bias_rw=0.01)
     learned = res.bias[step + int(10 * rate)]
     assert abs(learned @ vertical - 6.0 * DEG) < 1.0 * DEG, np.degrees(learned @ vertical)
     horizontal = res.bias - (res.bias @ vertical)[:, None] * vertical
     assert np.linalg.norm(horizontal[step:], axis=1).max() < 0.2 * DEG
     heading, _ = _errors_deg(res.q, truth)
     assert heading[step + int(15 * rate):].max() < 2.0
-    assert _errors_deg(slow.q, truth)[0][step + int(15 * rate)] > 10.0
+    assert _errors_deg(slow.q, truth)[0][step + int(15 * rate)] > 20.0
 
 
 def test_bias_is_not_learned_from_a_disturbed_field():
     """The vertical-bias turn with the field turned by 40° and scaled by 0.7 from 40 to
-    45 s: the disturbance is flagged and the vertical bias estimate moves by less than
-    0.01 °/s over it (measured 0.003), while the unguarded filter learns > 0.5 °/s of
-    false bias (measured 1.19)."""
+    45 s: the norm/dip check flags it within 0.1 s, and the vertical bias error does not
+    grow over it (it keeps converging on the true 1 °/s from the other information:
+    measured 0.058 °/s at the onset, never above it after)."""
     rate = 100.0
     truth, body_rate, vertical = _world_vertical_turn(60.0, rate)
     n = len(truth)
     start, stop = int(40 * rate), int(45 * rate)
     acc, _ = _sensors(truth)
     mag = Q.rotate(Q.conjugate(truth), _disturbed_field(n, start, stop, TILTED_AXIS, 40.0, 0.7))
-    gyr = np.tile(body_rate + 1.0 * DEG * vertical, (n, 1))
+    true_bias = 1.0 * DEG
+    gyr = np.tile(body_rate + true_bias * vertical, (n, 1))
     res = estimators.run("eskf", gyr, acc, mag, rate_hz=rate)
-    unguarded = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, mag_norm_th=1e9,
-                               mag_dip_th=1e9)
     assert res.mag_rejected[start + int(0.1 * rate):stop].all()
     during = slice(start, stop + int(2 * rate))
-    moved = np.abs(res.bias[during] @ vertical - res.bias[start] @ vertical).max()
-    moved_unguarded = np.abs(unguarded.bias[during] @ vertical
-                             - unguarded.bias[start] @ vertical).max()
-    assert moved < 0.01 * DEG, np.degrees(moved)
-    assert moved_unguarded > 0.5 * DEG
+    error = np.abs(res.bias[during] @ vertical - true_bias)
+    assert error.max() <= error[0] + 0.001 * DEG, np.degrees(error.max())
 
 
 # --- tilt and rotation -------------------------------------------------------------------
@@ -195,23 +191,27 @@ def test_static_tilt_is_exact_from_the_first_sample():
     assert Q.angle_between(q, truth).max() < 1e-9
 
 
-def test_wrong_start_converges_within_one_sample():
-    """q0 = level and north while the truth is tilted and turned: the inertial low-pass
-    starts at the first sample and the first magnetometer sample gets full weight, so the
-    attitude is right after one step, not after tau_acc."""
-    truth = _static(TILT, 1.0, 400.0)
+def test_wrong_start_converges():
+    """q0 = level and north while the truth is tilted 18° and turned 30°: the velocity
+    prior removes the tilt within seconds (measured < 1.2° after 2 s), the magnetometer
+    the heading with its slower time constant (measured 7.5° after 5 s, 2.1° after 20 s)."""
+    rate = 400.0
+    truth = _static(TILT, 20.0, rate)
     acc, mag = _sensors(truth)
-    q = estimators.batch("eskf", np.zeros((len(truth), 3)), acc, mag, rate_hz=400.0,
+    q = estimators.batch("eskf", np.zeros((len(truth), 3)), acc, mag, rate_hz=rate,
                          q0=Q.identity())
-    assert Q.angle_between(q[0], truth[0]) < 1e-9
-    assert Q.angle_between(q, truth).max() < 1e-9
+    heading, incl = _errors_deg(q, truth)
+    assert incl[0] > 15.0 and heading[0] > 25.0
+    assert incl[int(2 * rate):].max() < 1.5
+    assert heading[int(5 * rate)] < 10.0 and heading[-1] < 3.0
 
 
 @pytest.mark.parametrize("rate", [100.0, 8000.0])
 @pytest.mark.parametrize("axis", [0, 1, 2])
 def test_constant_rate_with_consistent_sensors(rate, axis):
     """200 °/s about each body axis for 3 s from the tilted attitude, consistent acc/mag:
-    the exact strapdown step and consistent corrections keep the error below 1e-6°."""
+    the exact strapdown step, the trapezoidal velocity and consistent measurements keep
+    the error at rounding level (measured < 1e-11°)."""
     w = np.zeros(3)
     w[axis] = 200.0 * DEG
     n = int(3.0 * rate)
@@ -222,37 +222,40 @@ def test_constant_rate_with_consistent_sensors(rate, axis):
     assert np.degrees(Q.angle_between(q, truth)).max() < 1e-6
 
 
-# --- acceleration rejection -----------------------------------------------------------
+# --- linear acceleration -----------------------------------------------------------------
 def _level_hold_with(lin_acc: np.ndarray, rate: float):
     truth = _static(TILT, len(lin_acc) / rate, rate)
     acc, mag = _sensors(truth, lin_acc)
     return truth, acc, mag
 
 
-def test_shock_is_rejected_and_flagged():
-    """A 0.2 s impact of 8 g sideways (|‖a‖ − g| ≈ 69 m/s² > acc_gate = 49): flagged as
-    rejected on exactly those samples, inclination unaffected (< 0.01°), while Mahony
-    (kp = 0.74) tilts by degrees."""
+def test_shock_barely_moves_the_inclination():
+    """A 0.2 s impact of 8 g sideways: it adds 16 m/s to the integrated velocity, which
+    the bounded-velocity prior soon rejects as an outlier (flagged). The first updates of
+    the impact still pull a little (peak measured 0.75°, bound 1°, a third of Mahony's
+    with kp = 0.74, which tilts by degrees). It stays until the velocity is re-anchored
+    (velocity_reset_time = 3 s after the rejections began) and is back under 0.1° 8 s after
+    the impact (measured 0.03° at 7 s)."""
     rate = 400.0
-    lin = np.zeros((int(6 * rate), 3))
+    lin = np.zeros((int(12 * rate), 3))
     shock = slice(int(2 * rate), int(2.2 * rate))
     lin[shock, 0] = 8.0 * G
     truth, acc, mag = _level_hold_with(lin, rate)
     res = estimators.run("eskf", np.zeros_like(acc), acc, mag, rate_hz=rate)
-    flagged = res.acc_rejected
-    assert flagged[shock].all() and flagged.sum() == shock.stop - shock.start
+    assert not res.acc_rejected[:shock.start].any()
+    assert res.acc_rejected[shock.start:shock.stop + int(0.1 * rate)].any()
     _, incl = _errors_deg(res.q, truth)
     mahony = estimators.batch("mahony", np.zeros_like(acc), acc, mag, rate_hz=rate, kp=0.74)
     _, incl_mahony = _errors_deg(mahony, truth)
-    assert incl.max() < 0.01
-    assert incl_mahony.max() > 2.0
+    assert incl.max() < 1.0 and incl.max() < incl_mahony.max() / 3.0, incl.max()
+    assert incl[shock.stop + int(8 * rate):].max() < 0.1
 
 
-def test_manoeuvre_acceleration_averages_out_in_the_inertial_frame():
+def test_manoeuvre_acceleration_is_absorbed_by_the_velocity():
     """A horizontal manoeuvre, +4 m/s² for 1 s then −4 m/s² for 1 s (velocity back to
-    zero, so the inertial-frame low-pass sees a zero mean). Not a shock, so not flagged:
-    the peak inclination error (measured 3.0°) is below 4° and below a third of
-    Mahony's (11.5°); the low-pass then settles with ζω = 1/tau_acc, < 0.1° after 15 s."""
+    zero): the accelerometer's 22° of apparent tilt goes into the integrated velocity, so
+    the peak inclination error stays below 1° and below a tenth of Mahony's (11.5°), and
+    < 0.1° after 15 s."""
     rate = 400.0
     lin = np.zeros((int(20 * rate), 3))
     lin[int(2 * rate):int(3 * rate), 1] = 4.0
@@ -262,23 +265,88 @@ def test_manoeuvre_acceleration_averages_out_in_the_inertial_frame():
     _, incl = _errors_deg(res.q, truth)
     mahony = estimators.batch("mahony", np.zeros_like(acc), acc, mag, rate_hz=rate, kp=0.74)
     _, incl_mahony = _errors_deg(mahony, truth)
-    assert not res.acc_rejected.any()
-    assert incl.max() < 4.0 and incl.max() < incl_mahony.max() / 3.0
+    assert incl.max() < 1.0 and incl.max() < incl_mahony.max() / 10.0, incl.max()
     assert incl[int(19 * rate):].max() < 0.1
 
 
-def test_long_shock_rejection_times_out():
-    """An accelerometer stuck far from g for longer than acc_reject_timeout is used again
-    (flags stop), so a wrong sensor cannot freeze the inclination forever."""
+def test_broken_accelerometer_cannot_tilt_the_estimate():
+    """An accelerometer reading 7 g for good (a broken or wrongly scaled sensor): every
+    velocity statement is rejected as an outlier and counted, the velocity is re-anchored
+    every velocity_reset_time, and the gyro alone keeps the attitude (inclination error
+    < 0.1°: the gyro is perfect here)."""
     rate = 100.0
-    truth = _static(TILT, 10.0, rate)
+    truth = _static(TILT, 20.0, rate)
     acc, mag = _sensors(truth)
-    acc[100:] *= 7.0  # |a| = 7 g from 1 s on
-    res = estimators.run("eskf", np.zeros_like(acc), acc, mag, rate_hz=rate,
-                         acc_reject_timeout=2.0)
-    rejected = np.flatnonzero(res.acc_rejected)
-    assert rejected[0] == 100
-    assert abs(len(rejected) - 2.0 * rate) <= 1
+    acc[100:] *= 7.0
+    res = estimators.run("eskf", np.zeros_like(acc), acc, mag, rate_hz=rate)
+    _, incl = _errors_deg(res.q, truth)
+    assert incl.max() < 0.1, incl.max()
+    assert res.acc_rejected[200:].mean() > 0.5
+
+
+def test_velocity_aiding_holds_the_tilt_in_sustained_acceleration():
+    """A vehicle holding 4 m/s² for 4 s (a multirotor's acceleration leg; the
+    accelerometer reads 22° of false tilt all along). Unaided, a bounded-velocity prior
+    cannot tell it from a tilt for that long; with the velocity measured at 5 Hz, 100 ms
+    late (a GPS), the inclination error stays below 0.5° (measured 0.2°) and below a
+    third of the unaided one."""
+    rate = 200.0
+    n = int(12 * rate)
+    lin = np.zeros((n, 3))
+    lin[int(2 * rate):int(6 * rate), 0] = 4.0
+    truth, acc, mag = _level_hold_with(lin, rate)
+    vel_true = np.cumsum(lin, axis=0) / rate
+    vel = np.full((n, 3), np.nan)
+    age = np.zeros(n)
+    latency = int(0.1 * rate)
+    for k in range(0, n - latency, int(rate / 5)):
+        vel[k + latency] = vel_true[k]
+        age[k + latency] = latency / rate
+    gyr = np.zeros((n, 3))
+    aided = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, vel=vel, vel_age=age)
+    unaided = estimators.run("eskf", gyr, acc, mag, rate_hz=rate)
+    incl_aided = _errors_deg(aided.q, truth)[1]
+    incl_unaided = _errors_deg(unaided.q, truth)[1]
+    assert incl_aided.max() < 0.5, incl_aided.max()
+    assert incl_aided.max() < incl_unaided.max() / 3.0
+
+
+def test_drag_model_makes_a_multirotor_tilt_observable():
+    """A multirotor (thrust along body z, rotor drag −μ·v in the body's x/y, μ = 0.8 1/s)
+    accelerating to 6 m/s and cruising: the body tilts to balance the drag. With the
+    drag model (started from μ = 0.5) the inclination error stays below 1° (the true
+    tilt reaches 26°) and μ is learned within 0.1 1/s; the bounded-velocity prior, which
+    takes the cruise for a tilt, is off by more."""
+    rate, mu = 200.0, 0.8
+    n = int(40 * rate)
+    t = np.arange(n) / rate
+    # velocity north: smooth ramp 0 -> 6 m/s over 3 s at t = 5 s, back to 0 at 25 s
+    def smooth(x):
+        x = np.clip(x, 0.0, 1.0)
+        return x * x * x * (10 - 15 * x + 6 * x * x)
+    v = 6.0 * (smooth((t - 5.0) / 3.0) - smooth((t - 25.0) / 3.0))
+    a = np.gradient(v, t)
+    # required force per mass (world, NED): a − g + μ·v (drag opposes velocity) ->
+    # thrust direction -z_body; here level heading north, so the tilt is a pitch.
+    fx = a + mu * v
+    pitch = np.arctan2(fx, G)  # nose down positive forward acceleration -> pitch < 0
+    truth = Q.from_euler(np.zeros(n), -pitch, np.zeros(n))
+    f_body = np.stack([-mu * v * np.cos(pitch), np.zeros(n),
+                       -np.hypot(fx, G) + mu * v * np.sin(pitch)], axis=1)
+    # consistency check of the construction: R·f = a − g
+    world = Q.rotate(truth, f_body)
+    assert np.allclose(world[:, 0], a, atol=1e-9) and np.allclose(world[:, 2], -G, atol=1e-9)
+    pitch_rate = np.gradient(-pitch, t)
+    gyr = np.stack([np.zeros(n), pitch_rate, np.zeros(n)], axis=1)
+    mag = Q.rotate(Q.conjugate(truth), FIELD_NED)
+    est = estimators.create("eskf", rate_hz=rate, drag=0.5)
+    res = est.run(gyr, f_body, mag)
+    prior = estimators.run("eskf", gyr, f_body, mag, rate_hz=rate)
+    incl = _errors_deg(res.q, truth)[1]
+    assert np.degrees(pitch).max() > 25.0
+    assert incl.max() < 1.0, incl.max()
+    assert abs(est.drag_coefficient - mu) < 0.1, est.drag_coefficient
+    assert _errors_deg(prior.q, truth)[1].max() > 2.0 * incl.max()
 
 
 # --- magnetic disturbance rejection -------------------------------------------------
@@ -410,7 +478,8 @@ def test_bad_samples_never_poison_the_state():
     gyr_bad[400] = np.nan
     est = estimators.create("eskf", rate_hz=rate)
     res = est.run(gyr_bad, acc_bad, mag_bad)
-    assert np.all(np.isfinite(est._state))
+    assert np.all(np.isfinite(est.covariance)) and np.all(np.isfinite(est.velocity))
+    assert np.isfinite(est.drag_coefficient)
     assert np.all(np.isfinite(res.q)) and np.all(np.isfinite(res.bias))
     c = est.counters
     assert (c.acc_unusable, c.mag_unusable, c.skipped) == (13, 21, 1)
@@ -419,9 +488,11 @@ def test_bad_samples_never_poison_the_state():
     assert np.degrees(Q.angle_between(res.q, clean.q)).max() < skipped_angle + 0.05
 
 
-def test_non_positive_time_constants_are_rejected():
-    with pytest.raises(ValueError, match="tau_acc"):
-        estimators.create("eskf", tau_acc=0.0)
+def test_non_positive_parameters_are_rejected():
+    for bad in ({"update_period": 0.0}, {"mag_noise": -1.0}, {"gyro_noise": math.inf},
+                {"drag": -0.5}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            estimators.create("eskf", **bad)
 
 
 # --- real data ------------------------------------------------------------------------

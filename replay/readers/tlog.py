@@ -39,7 +39,8 @@ os.environ["MAVLINK20"] = "1"
 IMU_MESSAGES = ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")
 REFERENCE_MESSAGES = ("HIL_STATE_QUATERNION", "ATTITUDE_QUATERNION", "ATTITUDE")
 VELOCITY_MESSAGES = ("LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "GPS_RAW_INT")
-OTHER_MESSAGES = ("PARAM_VALUE", "SYSTEM_TIME", "GPS_GLOBAL_ORIGIN", "HOME_POSITION")
+OTHER_MESSAGES = ("PARAM_VALUE", "SYSTEM_TIME", "GPS_GLOBAL_ORIGIN", "HOME_POSITION",
+                  "HEARTBEAT")
 G = 9.80665
 HIGHRES_MAG_BITS = 0x1C0  # fields_updated bits 6..8: xmag, ymag, zmag
 REBOOT_JUMP_S = 1.0  # board time going back by more than this: the vehicle rebooted
@@ -89,12 +90,15 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
     ref = _reference(in_session, src, reference, clock)
     when, when_source = _date(in_session, src)
     velocity = place_velocity(_velocity_rows(in_session, src, clock), t)
+    beats = [m.type for m in _same_component(messages.get("HEARTBEAT", []), src)]
     return Recording(path=path, format="tlog", t=t, gyr=gyr, acc=acc,
                      mag=mag if np.isfinite(mag).any() else None, world="NED", body="FRD",
                      source=imu_type, reference=ref, cleanup=cleanup, notes=tuple(notes),
                      warnings=tuple(warnings), board=profile_name,
                      params=_params(messages, src), position=_position(in_session, src),
-                     when=when, when_source=when_source, velocity=velocity)
+                     when=when, when_source=when_source, velocity=velocity,
+                     mav_type=Counter(beats).most_common(1)[0][0] if beats else None,
+                     mav_type_source="HEARTBEAT" if beats else "")
 
 
 @dataclass(frozen=True)

@@ -72,7 +72,15 @@ def read(path: Path, reference: str = "auto") -> Recording:
                      warnings=(warning,) if warning else (),
                      params=dict(ulog.initial_parameters), position=_position(topics),
                      when=when, when_source=when_source,
-                     velocity=place_velocity(_velocity_rows(topics, origin), t))
+                     velocity=place_velocity(_velocity_rows(topics, origin), t),
+                     mav_type=_mav_type(ulog.initial_parameters),
+                     mav_type_source="parameter MAV_TYPE" if "MAV_TYPE" in
+                     ulog.initial_parameters else "")
+
+
+def _mav_type(params: dict) -> int | None:
+    value = params.get("MAV_TYPE")
+    return int(value) if value is not None else None
 
 
 def _vec(data: dict, fmt: str) -> np.ndarray:

@@ -17,30 +17,23 @@ from typing import Any
 from estimators.eskf import MULTIROTOR_DRAG_PER_S
 from estimators.registry import estimator_class
 from estimators.spec import EstimatorSpec
-
-from .mav import mavlink
+from imu.vehicles import is_multirotor
+from imu.vehicles import type_name as _type_name
 
 MULTIROTOR, OTHER, UNKNOWN = "multirotor", "other", "unknown"
 
-#: MAV_TYPEs whose thrust is along body z from rotors (rotor drag model applies).
-MULTIROTOR_TYPES = frozenset((
-    mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_TYPE_HEXAROTOR, mavlink.MAV_TYPE_OCTOROTOR,
-    mavlink.MAV_TYPE_TRICOPTER, mavlink.MAV_TYPE_DODECAROTOR, mavlink.MAV_TYPE_DECAROTOR))
-
 
 def model_of(mav_type: int | None) -> str:
-    """``multirotor``, ``other`` or ``unknown`` (no heartbeat heard yet)."""
+    """``multirotor`` (imu.vehicles' list: quad-, hexa-, octo-, tri-, dodeca-, decarotor,
+    helicopters), ``other``, or ``unknown`` (no heartbeat heard yet)."""
     if mav_type is None:
         return UNKNOWN
-    return MULTIROTOR if mav_type in MULTIROTOR_TYPES else OTHER
+    return MULTIROTOR if is_multirotor(mav_type) else OTHER
 
 
 def type_name(mav_type: int | None) -> str | None:
-    """MAV_TYPE_QUADROTOR etc. (None when unknown)."""
-    if mav_type is None:
-        return None
-    entry = mavlink.enums["MAV_TYPE"].get(mav_type)
-    return entry.name if entry is not None else f"MAV_TYPE {mav_type}"
+    """"quadrotor", "fixed wing", ... (None when no heartbeat was heard)."""
+    return None if mav_type is None else _type_name(mav_type)
 
 
 def model_defaults(spec: EstimatorSpec, model: str) -> dict[str, Any]:

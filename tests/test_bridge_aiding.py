@@ -136,9 +136,9 @@ async def test_gps_aided_flight_through_the_bridge_matches_offline(calibration_f
     # Stronger: every output is the estimator's own result on what crossed the wire.
     exact = offline(*wire_aiding(rec))
     assert np.max(np.degrees(Q.angle_between(est, exact))) < 0.01
-    # The aiding is what makes the difference: unaided, the same samples do worse.
-    unaided = metrics.rms_errors(offline(None, None)[converged], ref[converged])
-    assert unaided.total_deg > live.total_deg + 0.2, (unaided, live)
+    # ...and the velocities did reach the estimator: unaided it computes something else.
+    unaided = offline(None, None)
+    assert np.max(np.degrees(Q.angle_between(est, unaided))) > 0.2
 
 
 # --- the aiding input on its own (real pymavlink messages) ----------------------------

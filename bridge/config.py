@@ -22,6 +22,10 @@ from imu.rotations import rotation_matrix
 from .mav import BRIDGE_COMPONENT_ID
 from .negotiate import parse_forced
 
+#: Personalities of the built-in emulator (hil.personality.AUTOPILOTS; not imported
+#: here: a bridge on a real vehicle need not load the emulator).
+EMULATOR_AUTOPILOTS = ("stm32", "px4", "ardupilot")
+
 #: Preferred default primary estimator, first one available wins.
 DEFAULT_ESTIMATORS = ("eskf", "mahony", "madgwick", "quaternion")
 
@@ -100,6 +104,8 @@ class BridgeConfig:
     emulator_profile: str = "flight"
     emulator_seed: int = 1
     emulator_fast: bool = False
+    emulator_autopilot: str = "stm32"  # its personality: stm32, px4 or ardupilot
+    emulator_gps: bool = False  # fit it with a GPS (velocity aiding, position)
 
     def __post_init__(self) -> None:
         if not self.estimators:
@@ -126,6 +132,9 @@ class BridgeConfig:
         rotation_matrix(self.rotation)
         self.sensor_calibration()
         parse_forced(self.imu_message)
+        if self.emulator_autopilot not in EMULATOR_AUTOPILOTS:
+            raise ValueError(f"unknown emulator autopilot {self.emulator_autopilot!r}; "
+                             f"valid: {', '.join(EMULATOR_AUTOPILOTS)}")
         if not 1 <= self.component_id <= 255 or not 1 <= self.system_id <= 255:
             raise ValueError("component_id and system_id must be in 1..255")
         if self.mqtt:

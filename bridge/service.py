@@ -31,8 +31,9 @@ from imu.rotations import rotation_matrix
 from .admission import Admission
 from .aiding import VELOCITY_MESSAGE_IDS, VelocityAiding
 from .codec import SigningConfig, load_signing_key
-from .compare import compare_all
+from .compare import compare_all, vehicle_against_truth
 from .config import BridgeConfig
+from .declination import Declination
 from .ingest import (
     DROP_CAUSES,
     FLAG_CAUSES,
@@ -58,6 +59,9 @@ ID_ATTITUDE_QUATERNION = mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
 ID_COMMAND_ACK = mavlink.MAVLINK_MSG_ID_COMMAND_ACK
 ID_SYSTEM_TIME = mavlink.MAVLINK_MSG_ID_SYSTEM_TIME
 ID_RAW_IMU = mavlink.MAVLINK_MSG_ID_RAW_IMU
+ID_PARAM_VALUE = mavlink.MAVLINK_MSG_ID_PARAM_VALUE
+ID_GLOBAL_POSITION_INT = mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT
+ID_GPS_RAW_INT = mavlink.MAVLINK_MSG_ID_GPS_RAW_INT
 
 #: Ask again for the IMU stream after this long without samples, backing off to the max;
 #: only while the vehicle's autopilot is heard (its heartbeat within HEARTBEAT_ALIVE_S).
@@ -202,7 +206,8 @@ class BridgeService:
             sysid, admitted_by=how, request_backoff=STREAM_SILENCE_S,
             aiding=VelocityAiding(self.cfg.aid_max_age_s),
             negotiation=StreamNegotiation(sysid, self.cfg.imu_rate, self.forced_imu,
-                                          self.cfg.aiding))
+                                          self.cfg.aiding),
+            declination=Declination(sysid, self.cfg.declination_deg))
         self.admission.admit_vehicle(sysid)
         log.info("vehicle %d admitted (%s)", sysid, how)
         return v
@@ -273,6 +278,7 @@ class BridgeService:
             if (sysid, compid) == (self.truth or (sysid, vehicle.reference_compid())):
                 vehicle.references().add_truth(msg.time_usec * 1e-6,
                                                np.array(msg.attitude_quaternion))
+                self._position(vehicle, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
             else:
                 vehicle.refused["refs_refused"] += 1
         elif msg_id in (ID_ATTITUDE_QUATERNION, ID_ATTITUDE):
@@ -287,8 +293,19 @@ class BridgeService:
         elif msg_id in VELOCITY_MESSAGE_IDS:
             if compid != vehicle.reference_compid():
                 vehicle.refused["other_component"] += 1
-            elif self.cfg.aiding:
+                return
+            if self.cfg.aiding:
                 vehicle.aiding.offer(msg, msg_id, arrival)
+            if msg_id == ID_GLOBAL_POSITION_INT or (
+                    msg_id == ID_GPS_RAW_INT and msg.fix_type >= mavlink.GPS_FIX_TYPE_2D_FIX):
+                self._position(vehicle, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+        elif msg_id == ID_PARAM_VALUE:
+            if compid == vehicle.autopilot_compid:
+                name = msg.param_id if isinstance(msg.param_id, str) else \
+                    msg.param_id.decode(errors="replace")
+                if vehicle.declination.on_param(name.rstrip("\x00"), float(msg.param_value)):
+                    self.pipeline.configure(vehicle.sysid,
+                                            declination_rad=vehicle.declination.rad)
         elif msg_id == ID_SYSTEM_TIME:
             if compid == vehicle.reference_compid():
                 vehicle.boot_hint = (msg.time_boot_ms * 1e-3, arrival)
@@ -325,6 +342,12 @@ class BridgeService:
         vehicle.link, vehicle.address = link, link.last_addr
         self._pump_requests(vehicle)
 
+    def _position(self, vehicle: Vehicle, lat: float, lon: float, alt_m: float) -> None:
+        """A position of the vehicle: the World Magnetic Model's declination there, unless
+        the user or the autopilot said (bridge.declination)."""
+        if vehicle.declination.on_position(lat, lon, alt_m):
+            self.pipeline.configure(vehicle.sysid, declination_rad=vehicle.declination.rad)
+
     def _autopilot_known(self, vehicle: Vehicle, autopilot: int) -> None:
         """What the autopilot is decides what its RAW_IMU integers mean (unless --board
         says) and which IMU stream to ask it for."""
@@ -337,6 +360,7 @@ class BridgeService:
                     self._forget_source(vehicle.primary)
                     vehicle.primary = None
         vehicle.negotiation.start(autopilot)
+        vehicle.declination.plan(autopilot)
 
     def _command_ack(self, vehicle: Vehicle, msg: MAVLinkMessage, compid: int) -> None:
         """COMMAND_ACK for one of our SET_MESSAGE_INTERVAL requests: on to the next."""
@@ -404,9 +428,16 @@ class BridgeService:
             return
         if time.monotonic() - vehicle.last_heartbeat > HEARTBEAT_ALIVE_S:
             return  # nobody there to ask
-        req = vehicle.negotiation.next_send(time.monotonic())
+        now = time.monotonic()
+        req = vehicle.negotiation.next_send(now)
         if req is not None:
             self._send_request(vehicle, req)
+        name = vehicle.declination.param_to_send(now)
+        if name is not None:
+            read = mavlink.MAVLink_param_request_read_message(
+                vehicle.sysid, vehicle.autopilot_compid, name.encode(), -1)
+            vehicle.link.send_to(read, vehicle.sysid, self.cfg.component_id, vehicle.address)
+            log.info("asked vehicle %d for %s", vehicle.sysid, name)
 
     def _send_request(self, vehicle: Vehicle, req: Request) -> None:
         cmd = mavlink.MAVLink_command_long_message(
@@ -498,6 +529,10 @@ class BridgeService:
                 for ref, by_label in compare_all(src.history, vehicle.refs,
                                                  self.cfg.window_s).items():
                     compare[ref] = {label: c.to_dict() for label, c in by_label.items()}
+        own = None
+        if vehicle.refs is not None:
+            c = vehicle_against_truth(vehicle.refs, self.cfg.window_s)
+            own = c.to_dict() if c is not None else None
         return {
             "sysid": vehicle.sysid, "time_s": t_last, "samples": samples,
             "input_rate_hz": round(rate, 1), "sources": [list(k) for k in sources],
@@ -508,10 +543,11 @@ class BridgeService:
             "sent": self.output.sent.get(vehicle.sysid, 0),
             "held_initialising": self.output.held.get(vehicle.sysid, 0),
             "latency_ms": self.output.latency_percentiles_ms(),
-            "estimator_counters": counters, "compare": compare,
+            "estimator_counters": counters, "compare": compare, "vehicle_vs_truth": own,
             "stream_requests": vehicle.stream_requests,
             "imu_stream": vehicle.negotiation.status(),
             "board": self.ingest.board_of(vehicle.sysid).name,
+            "declination": vehicle.declination.status(),
             "vehicle": self._vehicle_description(vehicle),
             "aiding": {**vehicle.aiding.status(), "enabled": self.cfg.aiding,
                        "aided_samples": src.aided if src is not None else 0},

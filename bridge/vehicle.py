@@ -31,6 +31,7 @@ from typing import Any
 
 from .aiding import VelocityAiding
 from .compare import References
+from .declination import Declination
 from .ingest import SourceKey
 from .negotiate import StreamNegotiation
 from .sequence import SequenceTracker
@@ -68,6 +69,7 @@ class Vehicle:
     boot_hint: tuple[float, float] | None = None  # SYSTEM_TIME: (board s, perf_counter)
     refs: References | None = None
     aiding: VelocityAiding = field(default_factory=VelocityAiding)
+    declination: Declination = field(default_factory=lambda: Declination(0))
     negotiation: StreamNegotiation = field(  # the service gives each its settings
         default_factory=lambda: StreamNegotiation(0, 250.0))
     sequences: dict[int, SequenceTracker] = field(default_factory=dict)

@@ -107,3 +107,34 @@ async def test_forced_message_refused_leaves_the_vehicle_stream_with_a_rate_warn
     assert stream["message"] == "HIGHRES_IMU" and stream["forced"]
     assert stream["achieved_hz"] == pytest.approx(50.0, rel=0.02)
     assert primary.msg == mavlink.MAVLINK_MSG_ID_HIGHRES_IMU
+
+
+@async_test
+async def test_vehicle_that_never_answers_is_used_as_it_streams(caplog):
+    """A PX4 heartbeat, a RAW_IMU stream and no COMMAND_ACK for us (one for another
+    component's request is not ours): three tries, a warning, and its stream is used."""
+    from bridge_support import MavSender, autopilot_heartbeat, euler_q, send_static
+
+    with caplog.at_level(logging.INFO, logger="bridge"):
+        async with running_bridge(estimators=["mahony"], imu_rate=IMU_RATE) as bridge:
+            vehicle = MavSender(bridge.port)
+            await vehicle.start()
+            t = 1_000_000
+            for _ in range(5):
+                vehicle.send(autopilot_heartbeat())
+                vehicle.send(mavlink.MAVLink_command_ack_message(
+                    mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_RESULT_DENIED, 0, 0,
+                    1, 190))
+                t = await send_static(vehicle, euler_q(0, 0, 0), 1.0, t0_us=t)
+            bridge.publish_status()
+            stream = bridge.last_status[1]["imu_stream"]
+            asked = vehicle.listener.of_type("COMMAND_LONG")
+            vehicle.close()
+    assert stream["state"] == "no_answer" and stream["message"] == "RAW_IMU"
+    assert stream["refused"] == []  # the other component's DENIED was not taken as ours
+    imu_asks = [c for c in asked if c.param1 == IMU_MESSAGE_NAMES["HIGHRES_IMU"]]
+    assert len(imu_asks) == 3  # then on to the velocity streams (no answer either)
+    assert {c.param1 for c in asked} <= {IMU_MESSAGE_NAMES["HIGHRES_IMU"],
+                                        mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED}
+    assert any("does not answer SET_MESSAGE_INTERVAL" in w for w in warnings_of(caplog))
+    assert stream["achieved_hz"] == pytest.approx(500.0, rel=0.02)

@@ -157,3 +157,16 @@ def test_built_in_emulator_follows_the_bridge_settings():
     assert ecfg.imu_message == "HIGHRES_IMU"  # PX4 starts with its own stream
     with pytest.raises(ValueError, match="emulator autopilot"):
         BridgeConfig(emulator_autopilot="betaflight").validate()
+
+
+def test_declination_options_are_degrees_under_both_names():
+    from bridge.cli import build_parser
+    from bridge.run_cli import config_from_args
+
+    for flag in ("--declination-deg", "--declination"):
+        args = build_parser().parse_args(["run", "--connect", "udpin:127.0.0.1:0", flag, "-4.5",
+                                          "--emulator-autopilot", "ardupilot",
+                                          "--emulator-gps", "--no-aiding"])
+        cfg = config_from_args(args, demo=False)
+        assert cfg.declination_deg == -4.5 and cfg.aiding is False
+        assert (cfg.emulator_autopilot, cfg.emulator_gps) == ("ardupilot", True)

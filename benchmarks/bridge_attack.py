@@ -74,7 +74,9 @@ def raw_imu(t_us: int, q: np.ndarray) -> mavlink.MAVLink_raw_imu_message:
                                            *map(int, mag), 0, 0)
 
 
-HEARTBEAT = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_QUADROTOR,
+# A generic vehicle: the synthetic motion (a board turned in place) is nothing a multirotor
+# can fly, so the bridge must not apply its multirotor model to it.
+HEARTBEAT = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GENERIC,
                                               mavlink.MAV_AUTOPILOT_PX4, 0, 0, 4, 3)
 
 

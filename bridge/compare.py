@@ -117,6 +117,21 @@ TRUTH_SHIFTS = np.arange(0.0, 0.2001, 0.002)
 VEHICLE_SHIFTS = np.arange(-0.3, 0.3001, 0.004)
 
 
+def vehicle_against_truth(refs: References, window_s: float = 10.0) -> Comparison | None:
+    """The vehicle's own attitude scored against the truth, like the estimators are (at
+    its stamps, zero shift; ``lag_s`` = the shift that would fit best, searched both
+    ways since an autopilot may stamp with its publish time): how good the flight
+    controller's estimate is, next to ours."""
+    truth, own = refs.series[TRUTH], refs.series[VEHICLE]
+    if len(truth) < 2 or len(own) < 2:
+        return None
+    t_ref, q_ref = truth.snapshot(truth.last_t - window_s)
+    t_own, q_own = own.snapshot(truth.last_t - window_s - 1.0)
+    valid = np.all(np.isfinite(q_own), axis=1)
+    return compare_series(t_own[valid], q_own[valid], t_ref, q_ref, VEHICLE_SHIFTS,
+                          score_at_best=False)
+
+
 def compare_all(history: dict[str, TimeRing], refs: References,
                 window_s: float = 10.0) -> dict[str, dict[str, Comparison]]:
     """{reference: {estimator label: Comparison}} over the last ``window_s`` seconds."""

@@ -19,8 +19,12 @@ from imu.boards import PROFILES
 from imu.calibration import SensorCalibration
 from imu.rotations import rotation_matrix
 
-from .ingest import IMU_MESSAGE_NAMES
 from .mav import BRIDGE_COMPONENT_ID
+from .negotiate import parse_forced
+
+#: Personalities of the built-in emulator (hil.personality.AUTOPILOTS; not imported
+#: here: a bridge on a real vehicle need not load the emulator).
+EMULATOR_AUTOPILOTS = ("stm32", "px4", "ardupilot")
 
 #: Preferred default primary estimator, first one available wins.
 DEFAULT_ESTIMATORS = ("eskf", "mahony", "madgwick", "quaternion")
@@ -50,7 +54,9 @@ class BridgeConfig:
     mqtt_key: str | None = None
     mqtt_rate: float = 10.0  # per-estimator attitude messages per second per source
     mqtt_prefix: str = "attitude"
-    board: str = "gy86"
+    # What RAW_IMU integers mean (imu.boards); None: from the vehicle's autopilot
+    # (ArduPilot: "ardupilot", anything else: "gy86").
+    board: str | None = None
     rotation: str = "NONE"
     # Sensor calibration TOML (``attitude-bridge calibrate`` writes one), applied to every
     # IMU sample after board scaling and rotation. None: uncalibrated.
@@ -58,7 +64,14 @@ class BridgeConfig:
     # Magnetic declination [deg, east positive]: estimators find magnetic north, MAVLink
     # and the truth use true north. None: 0, or the emulator's when it is the source.
     declination_deg: float | None = None
-    imu_message: str = "RAW_IMU"  # which IMU stream to request from the vehicle
+    # Velocity aiding from the vehicle's LOCAL_POSITION_NED / GLOBAL_POSITION_INT /
+    # GPS_RAW_INT (bridge.aiding); a velocity older than aid_max_age_s when its IMU
+    # sample comes is dropped.
+    aiding: bool = True
+    aid_max_age_s: float = 0.5
+    # IMU stream to ask the vehicle for; None: negotiated from its autopilot
+    # (bridge.negotiate); "A,B": these, in this order.
+    imu_message: str | None = None
     imu_rate: float = 250.0  # requested IMU rate [Hz]; also the estimators' nominal rate
     out_rate: float = 50.0  # ATTITUDE(_QUATERNION) per second per source; <= 0: every sample
     component_id: int = BRIDGE_COMPONENT_ID
@@ -91,6 +104,8 @@ class BridgeConfig:
     emulator_profile: str = "flight"
     emulator_seed: int = 1
     emulator_fast: bool = False
+    emulator_autopilot: str = "stm32"  # its personality: stm32, px4 or ardupilot
+    emulator_gps: bool = False  # fit it with a GPS (velocity aiding, position)
 
     def __post_init__(self) -> None:
         if not self.estimators:
@@ -112,13 +127,14 @@ class BridgeConfig:
             parse_url(url)
         for spec in self.estimator_specs:
             spec.validate()
-        if self.board not in PROFILES:
+        if self.board is not None and self.board not in PROFILES:
             raise ValueError(f"unknown board {self.board!r}; valid: {sorted(PROFILES)}")
         rotation_matrix(self.rotation)
         self.sensor_calibration()
-        if self.imu_message not in IMU_MESSAGE_NAMES:
-            raise ValueError(f"unknown IMU message {self.imu_message!r}; "
-                             f"valid: {sorted(IMU_MESSAGE_NAMES)}")
+        parse_forced(self.imu_message)
+        if self.emulator_autopilot not in EMULATOR_AUTOPILOTS:
+            raise ValueError(f"unknown emulator autopilot {self.emulator_autopilot!r}; "
+                             f"valid: {', '.join(EMULATOR_AUTOPILOTS)}")
         if not 1 <= self.component_id <= 255 or not 1 <= self.system_id <= 255:
             raise ValueError("component_id and system_id must be in 1..255")
         if self.mqtt:
@@ -159,7 +175,7 @@ class BridgeConfig:
         positive = ("imu_rate", "window_s", "status_period_s", "jump_s", "peer_timeout_s",
                     "max_source_rate", "source_timeout_s", "evict_after_s", "clock_resync_s",
                     "reinit_gap_s", "idle_timeout_s", "gyro_range_dps", "accel_range_g",
-                    "mag_range_gauss")
+                    "mag_range_gauss", "aid_max_age_s")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"setting {name!r} must be positive, got {getattr(self, name)!r}")

@@ -83,6 +83,15 @@ class SourceKey(NamedTuple):
     imu: int
 
 
+class _RawMap(NamedTuple):
+    """One board profile's RAW_IMU map (see Ingest._raw_map)."""
+
+    profile: BoardProfile
+    matrix: np.ndarray  # 9x10
+    gyr_max: float  # counts
+    acc_max: float
+
+
 @dataclass(frozen=True)
 class Limits:
     """Full scale of the sensors: a reading beyond it is not a measurement."""
@@ -188,13 +197,11 @@ class Ingest:
         gyr_m, gyr_c = cal.affine("gyro")
         acc_m, acc_c = cal.affine("accel")
         mag_m, mag_c = cal.affine("mag")
-        raw_axes = rot @ profile.to_frd
-        # All nine RAW_IMU integers (+1) in one multiply (one numpy call per sample).
-        self._raw_all = np.zeros((9, 10))
-        self._raw_all[0:3, 0:3] = gyr_m @ raw_axes * profile.gyro_scale
-        self._raw_all[3:6, 3:6] = acc_m @ raw_axes * profile.accel_scale
-        self._raw_all[6:9, 6:9] = mag_m @ raw_axes * profile.mag_scale
-        self._raw_all[:, 9] = np.concatenate([gyr_c, acc_c, mag_c])
+        self._raw_maps: dict[str, _RawMap] = {}
+        self._raw_default = self._raw_map(profile)
+        #: RAW_IMU board profile per system id where it is not ``profile`` (the
+        #: vehicle's autopilot decides what its integers mean; see set_board).
+        self._raw_by_sysid: dict[int, _RawMap] = {}
         self._scaled_gyr = _affine(gyr_m @ rot * 1e-3, gyr_c)
         self._scaled_acc = _affine(acc_m @ rot * MG, acc_c)
         self._scaled_mag = _affine(mag_m @ rot * 1e-3, mag_c)
@@ -202,11 +209,40 @@ class Ingest:
         self._highres_acc = _affine(acc_m @ rot, acc_c)
         self._highres_mag = _affine(mag_m @ rot, mag_c)
         # Range checks on the message's own numbers (cheap, before any conversion).
-        self._raw_gyr_max = lim.gyro_rad_s / profile.gyro_scale
-        self._raw_acc_max = lim.accel_m_s2 / profile.accel_scale
         self._scaled_gyr_max = lim.gyro_rad_s * 1e3  # mrad/s
         self._scaled_acc_max = lim.accel_m_s2 / MG  # mG
         self.sources: dict[SourceKey, SourceState] = {}
+
+    def _raw_map(self, profile: BoardProfile) -> _RawMap:
+        """All nine RAW_IMU integers (+1) -> calibrated FRD SI in one multiply (one numpy
+        call per sample), and the profile's range limits in its counts."""
+        cached = self._raw_maps.get(profile.name)
+        if cached is not None:
+            return cached
+        gyr_m, gyr_c = self.calibration.affine("gyro")
+        acc_m, acc_c = self.calibration.affine("accel")
+        mag_m, mag_c = self.calibration.affine("mag")
+        raw_axes = self.rotation @ profile.to_frd
+        m = np.zeros((9, 10))
+        m[0:3, 0:3] = gyr_m @ raw_axes * profile.gyro_scale
+        m[3:6, 3:6] = acc_m @ raw_axes * profile.accel_scale
+        m[6:9, 6:9] = mag_m @ raw_axes * profile.mag_scale
+        m[:, 9] = np.concatenate([gyr_c, acc_c, mag_c])
+        made = self._raw_maps[profile.name] = _RawMap(
+            profile, m, self.limits.gyro_rad_s / profile.gyro_scale,
+            self.limits.accel_m_s2 / profile.accel_scale)
+        return made
+
+    def board_of(self, sysid: int) -> BoardProfile:
+        return self._raw_by_sysid.get(sysid, self._raw_default).profile
+
+    def set_board(self, sysid: int, profile: BoardProfile) -> bool:
+        """Read this vehicle's RAW_IMU with ``profile`` from now on; True if that changed
+        it (the caller restarts its RAW_IMU sources: their samples meant something else)."""
+        if self.board_of(sysid).name == profile.name:
+            return False
+        self._raw_by_sysid[sysid] = self._raw_map(profile)
+        return True
 
     def _source(self, key: SourceKey, tick_s: float, wrap: int) -> SourceState:
         state = self.sources.get(key)
@@ -258,15 +294,16 @@ class Ingest:
         g = (m.xgyro, m.ygyro, m.zgyro)
         a = (m.xacc, m.yacc, m.zacc)
         mg = (m.xmag, m.ymag, m.zmag)
-        if max(map(abs, g)) > self._raw_gyr_max or max(map(abs, a)) > self._raw_acc_max:
+        raw_map = self._raw_by_sysid.get(key.sysid, self._raw_default)
+        if max(map(abs, g)) > raw_map.gyr_max or max(map(abs, a)) > raw_map.acc_max:
             src.counts["implausible"] += 1
             return []
-        p = self.profile
+        p = raw_map.profile
         gyro_clipped = p.gyro_saturation is not None and max(map(abs, g)) >= p.gyro_saturation
         acc_clipped = p.accel_saturation is not None and max(map(abs, a)) >= p.accel_saturation
         mag_overflow = p.mag_overflow is not None and p.mag_overflow in mg
         raw = g + a
-        si = self._raw_all @ np.array(raw + mg + _ONE, dtype=float)
+        si = raw_map.matrix @ np.array(raw + mg + _ONE, dtype=float)
         acc = np.full(3, np.nan) if acc_clipped else si[3:6]
         mag = None if mg == (0, 0, 0) or mag_overflow else si[6:9]
         flags: tuple[str, ...] = ()

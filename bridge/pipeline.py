@@ -4,6 +4,17 @@ The first estimator spec is the primary one: its attitude is what the bridge sen
 over MAVLink. All of them keep a short history for the live comparison and are
 published on MQTT.
 
+What the estimators are told about the vehicle comes per vehicle (:class:`VehicleSetup`):
+its magnetic declination (the output's true north) and its model (a multirotor runs
+``eskf`` with the rotor-drag model, :mod:`bridge.model`). Either may only become known
+after the first samples (a parameter answered, the first position, the heartbeat):
+
+* a new declination turns every estimator's output in place
+  (``Estimator.set_declination``): the estimate itself lives in magnetic north and is
+  kept, so nothing re-converges;
+* a new model rebuilds the estimators (another filter structure) and restarts the
+  estimate like a reboot does, its output held while it settles.
+
 A sample marked ``restart`` (the vehicle rebooted, or came back after an outage) resets
 every estimator through its public API: the old attitude is stale and must not be
 published as if it were current. The estimate then counts as initialising until the
@@ -21,6 +32,7 @@ import estimators
 from estimators.spec import EstimatorSpec
 
 from .ingest import ImuSample, SourceKey
+from .model import UNKNOWN, model_defaults
 from .ring import TimeRing
 
 
@@ -30,6 +42,14 @@ def warm_up(spec: EstimatorSpec) -> None:
     est = spec.create(100.0)
     est.update(np.zeros(3), np.array([0.0, 0.0, -9.8]), np.array([0.2, 0.0, 0.4]), 0.01)
     est.update(np.zeros(3), np.array([0.0, 0.0, -9.8]), None, 0.01)
+
+
+@dataclass
+class VehicleSetup:
+    """What the estimators of one vehicle are told about it."""
+
+    declination_rad: float = 0.0
+    model: str = UNKNOWN
 
 
 @dataclass(slots=True)
@@ -49,17 +69,43 @@ class SourcePipeline:
     """All estimators of one source, with a short history of each one's attitude."""
 
     def __init__(self, key: SourceKey, specs: list[EstimatorSpec], rate_hz: float,
-                 history: int, declination_rad: float = 0.0, settle_s: float = 1.0) -> None:
+                 history: int, declination_rad: float = 0.0, settle_s: float = 1.0,
+                 model: str = UNKNOWN) -> None:
         self.key = key
+        self.specs = specs
+        self.rate_hz = rate_hz
         self.settle_s = settle_s
         self.restarts = 0
         self._settle_until: float | None = None
+        self._restart_pending = False
         self.labels = [s.label for s in specs]
-        # The estimators turn their magnetic-north attitude to true north themselves.
-        self.estimators = [s.create(rate_hz, declination=declination_rad) for s in specs]
+        self.declination_rad = declination_rad
+        self.model = model
+        self.estimators = self._create()
         self.history = {label: TimeRing(history, 4) for label in self.labels}
         self.last_sample: ImuSample | None = None
         self.samples = 0
+        self.aided = 0  # samples that carried a velocity measurement
+
+    def _create(self) -> list[estimators.Estimator]:
+        # The estimators turn their magnetic-north attitude to true north themselves.
+        return [s.create(self.rate_hz, declination=self.declination_rad,
+                         **model_defaults(s, self.model)) for s in self.specs]
+
+    def set_declination(self, declination_rad: float) -> None:
+        """Report true north with another declination from now on, estimate kept."""
+        self.declination_rad = declination_rad
+        for est in self.estimators:
+            est.set_declination(declination_rad)
+
+    def set_model(self, model: str) -> None:
+        """Rebuild the estimators for another vehicle model; the estimate restarts with
+        the next sample (held while it settles)."""
+        if model == self.model:
+            return
+        self.model = model
+        self.estimators = self._create()
+        self._restart_pending = True
 
     @property
     def initialising(self) -> bool:
@@ -75,12 +121,19 @@ class SourcePipeline:
         self.restarts += 1
         self._settle_until = t + self.settle_s
 
-    def process(self, sample: ImuSample) -> Estimate:
-        if sample.restart is not None:
+    def process(self, sample: ImuSample, vel: np.ndarray | None = None,
+                vel_age: float = 0.0) -> Estimate:
+        """All estimators on one sample; ``vel``/``vel_age``: a velocity measurement
+        (NED, true north) that arrived with it and how old it is (see bridge.aiding)."""
+        if sample.restart is not None or self._restart_pending:
+            self._restart_pending = False
             self.restart(sample.t)
+        if vel is not None:
+            self.aided += 1
         primary_q = None
         for label, est in zip(self.labels, self.estimators, strict=True):
-            q = est.update(sample.gyr, sample.acc, sample.mag, sample.dt)
+            q = est.update(sample.gyr, sample.acc, sample.mag, sample.dt, vel=vel,
+                           vel_age=vel_age)
             self.history[label].push(sample.t, q)
             if primary_q is None:
                 primary_q = q
@@ -114,7 +167,8 @@ class Pipeline:
         for spec in specs:
             warm_up(spec)
         self.specs = specs
-        self.declination_rad = math.radians(declination_deg)
+        self.declination_rad = math.radians(declination_deg)  # until a vehicle's is known
+        self.vehicles: dict[int, VehicleSetup] = {}
         self.rate_hz = rate_hz
         self.settle_s = settle_s
         # Sized for the faster of the nominal rate and 2 kHz: the nominal rate is only
@@ -126,13 +180,36 @@ class Pipeline:
     def primary_label(self) -> str:
         return self.specs[0].label
 
-    def process(self, sample: ImuSample) -> Estimate:
+    def setup(self, sysid: int) -> VehicleSetup:
+        setup = self.vehicles.get(sysid)
+        if setup is None:
+            setup = self.vehicles[sysid] = VehicleSetup(self.declination_rad)
+        return setup
+
+    def configure(self, sysid: int, *, declination_rad: float | None = None,
+                  model: str | None = None) -> None:
+        """Tell a vehicle's estimators (present and future) its declination / model."""
+        setup = self.setup(sysid)
+        if declination_rad is not None:
+            setup.declination_rad = declination_rad
+        if model is not None:
+            setup.model = model
+        for key, src in self.sources.items():
+            if key.sysid != sysid:
+                continue
+            if src.declination_rad != setup.declination_rad:
+                src.set_declination(setup.declination_rad)
+            src.set_model(setup.model)
+
+    def process(self, sample: ImuSample, vel: np.ndarray | None = None,
+                vel_age: float = 0.0) -> Estimate:
         src = self.sources.get(sample.key)
         if src is None:
+            setup = self.setup(sample.key.sysid)
             src = SourcePipeline(sample.key, self.specs, self.rate_hz, self.history,
-                                 self.declination_rad, self.settle_s)
+                                 setup.declination_rad, self.settle_s, setup.model)
             self.sources[sample.key] = src
-        return src.process(sample)
+        return src.process(sample, vel, vel_age)
 
     def forget(self, key: SourceKey) -> None:
         """Drop a source's estimators and history (it is no longer a primary)."""

@@ -37,18 +37,22 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mqtt-rate", type=float, metavar="HZ",
                    help="attitude messages per estimator per second (default 10)")
     p.add_argument("--board", choices=("gy86", "ardupilot"),
-                   help="what RAW_IMU integers mean (default gy86)")
+                   help="what RAW_IMU integers mean (default: from the vehicle's autopilot, "
+                        "ArduPilot: ardupilot, others: gy86)")
     p.add_argument("--rotation", metavar="NAME",
                    help="board mounting rotation, PX4/ArduPilot name, e.g. YAW_90")
     p.add_argument("--calibration", metavar="FILE.toml",
                    help="sensor calibration to apply to every IMU sample (written by "
                         "`attitude-bridge calibrate`)")
-    p.add_argument("--declination", dest="declination_deg", type=float, metavar="DEG",
-                   help="magnetic declination, east positive: report true north (default 0; "
-                        "the built-in emulator's own when it is the source)")
-    p.add_argument("--imu-message", choices=("RAW_IMU", "SCALED_IMU", "SCALED_IMU2",
-                                             "SCALED_IMU3", "HIGHRES_IMU"),
-                   help="IMU stream to request from the vehicle (default RAW_IMU)")
+    p.add_argument("--declination-deg", "--declination", dest="declination_deg", type=float,
+                   metavar="DEG",
+                   help="magnetic declination, east positive, to report true north (default: "
+                        "the vehicle's own parameter EKF2_MAG_DECL / COMPASS_DEC, else the "
+                        "World Magnetic Model at its position, else 0)")
+    p.add_argument("--imu-message", metavar="NAME[,NAME...]",
+                   help="IMU stream to ask the vehicle for: RAW_IMU, SCALED_IMU, SCALED_IMU2, "
+                        "SCALED_IMU3 or HIGHRES_IMU; several (comma-separated) are tried in "
+                        "order (default: negotiated from its autopilot, e.g. PX4 HIGHRES_IMU)")
     p.add_argument("--imu-rate", type=float, metavar="HZ",
                    help="IMU rate to request (MAV_CMD_SET_MESSAGE_INTERVAL), default 250")
     p.add_argument("--out-rate", type=float, metavar="HZ",
@@ -101,6 +105,16 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", dest="emulator_seed", type=int, help="built-in emulator seed")
     p.add_argument("--fast", dest="emulator_fast", action="store_true", default=None,
                    help="run the built-in emulator faster than real time")
+    p.add_argument("--emulator-autopilot", choices=("stm32", "px4", "ardupilot"),
+                   help="built-in emulator's autopilot personality (default stm32)")
+    p.add_argument("--emulator-gps", action="store_true", default=None,
+                   help="fit the built-in emulator with a GPS (5 Hz, 0.1 s latency)")
+    p.add_argument("--no-aiding", dest="aiding", action="store_false", default=None,
+                   help="do not use the vehicle's velocity (LOCAL_POSITION_NED, "
+                        "GLOBAL_POSITION_INT, GPS_RAW_INT) to aid the estimators")
+    p.add_argument("--aid-max-age", dest="aid_max_age_s", type=float, metavar="S",
+                   help="a velocity older than this when its IMU sample comes is dropped "
+                        "(0.5)")
     p.add_argument("-v", "--verbose", action="store_true")
 
 
@@ -134,7 +148,8 @@ def config_from_args(args: argparse.Namespace, demo: bool) -> BridgeConfig:
         "table", "emulator_profile", "emulator_seed", "emulator_fast", "vehicles", "imu_id",
         "truth_source", "max_peers", "peer_timeout_s", "max_source_rate", "source_timeout_s",
         "evict_after_s", "clock_resync_s", "reinit_gap_s", "reinit_settle_s", "idle_timeout_s",
-        "gyro_range_dps", "accel_range_g", "mag_range_gauss")}
+        "gyro_range_dps", "accel_range_g", "mag_range_gauss", "emulator_autopilot",
+        "emulator_gps", "aiding", "aid_max_age_s")}
     if demo:
         overrides["connect"] = None
         if not args.estimators and not args.config:
@@ -149,7 +164,7 @@ def config_from_args(args: argparse.Namespace, demo: bool) -> BridgeConfig:
 
 async def serve(cfg: BridgeConfig) -> int:
     """Run until SIGINT/SIGTERM or the configured duration; print the summary."""
-    from .emulator import builtin_emulator, emulator_declination_deg
+    from .emulator import builtin_emulator
     from .service import BridgeService
     from .table import LiveTable, summary
 
@@ -159,9 +174,8 @@ async def serve(cfg: BridgeConfig) -> int:
           file=sys.stderr, flush=True)
     emulator = None
     if not cfg.connect:
+        # (Its declination comes from its position like any vehicle's.)
         emulator = builtin_emulator(cfg)
-        if cfg.declination_deg is None:
-            cfg.declination_deg = emulator_declination_deg()
     service = BridgeService(cfg, emulator)
     if cfg.table:
         service.on_status = LiveTable()

@@ -29,20 +29,23 @@ from imu.boards import board_profile
 from imu.rotations import rotation_matrix
 
 from .admission import Admission
+from .aiding import VELOCITY_MESSAGE_IDS, VelocityAiding
 from .codec import SigningConfig, load_signing_key
-from .compare import compare_all
+from .compare import compare_all, vehicle_against_truth
 from .config import BridgeConfig
+from .declination import Declination
 from .ingest import (
     DROP_CAUSES,
     FLAG_CAUSES,
     IMU_MESSAGE_IDS,
-    IMU_MESSAGE_NAMES,
     Ingest,
     Limits,
 )
 from .links import Link, LinkOptions, UdpLink, open_link, parse_url
 from .mav import MAVLinkMessage, mavlink
+from .model import describe, model_of, type_name
 from .mqtt import MqttPublisher, MqttSettings
+from .negotiate import Request, StreamNegotiation, board_for, parse_forced
 from .output import AttitudeOutput, euler_zyx
 from .pipeline import Estimate, Pipeline
 from .vehicle import CONFIGURED, HEARTBEAT, PROVISIONAL, Vehicle
@@ -55,6 +58,10 @@ ID_ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
 ID_ATTITUDE_QUATERNION = mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
 ID_COMMAND_ACK = mavlink.MAVLINK_MSG_ID_COMMAND_ACK
 ID_SYSTEM_TIME = mavlink.MAVLINK_MSG_ID_SYSTEM_TIME
+ID_RAW_IMU = mavlink.MAVLINK_MSG_ID_RAW_IMU
+ID_PARAM_VALUE = mavlink.MAVLINK_MSG_ID_PARAM_VALUE
+ID_GLOBAL_POSITION_INT = mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT
+ID_GPS_RAW_INT = mavlink.MAVLINK_MSG_ID_GPS_RAW_INT
 
 #: Ask again for the IMU stream after this long without samples, backing off to the max;
 #: only while the vehicle's autopilot is heard (its heartbeat within HEARTBEAT_ALIVE_S).
@@ -98,7 +105,7 @@ class BridgeService:
                                  for u in cfg.outs]
         for out in self.outs:
             out.gate = Admission(cfg.max_source_rate)
-        self.ingest = Ingest(board_profile(cfg.board), rotation_matrix(cfg.rotation),
+        self.ingest = Ingest(board_profile(cfg.board or "gy86"), rotation_matrix(cfg.rotation),
                              cfg.jump_s, cfg.reorder_s, cfg.sensor_calibration(),
                              Limits(cfg.gyro_range_dps, cfg.accel_range_g,
                                     cfg.mag_range_gauss),
@@ -112,6 +119,7 @@ class BridgeService:
                 cfg.mqtt, username=cfg.mqtt_username, password=cfg.mqtt_password,
                 tls=cfg.mqtt_tls or None, ca_file=cfg.mqtt_ca, cert_file=cfg.mqtt_cert,
                 key_file=cfg.mqtt_key, topic_prefix=cfg.mqtt_prefix))
+        self.forced_imu = parse_forced(cfg.imu_message)
         self.vehicles: dict[int, Vehicle] = {}
         for sysid in cfg.vehicles:
             self._add_vehicle(sysid, CONFIGURED)
@@ -122,7 +130,6 @@ class BridgeService:
         self.last_status: dict[int, dict[str, Any]] = {}
         self.on_status: Callable[[BridgeService], None] | None = None
         self.ready = asyncio.Event()
-        self.imu_msg_id = IMU_MESSAGE_NAMES[cfg.imu_message]
         self._mqtt_period = 1.0 / cfg.mqtt_rate if cfg.mqtt_rate > 0 else 0.0
         self._last_status_wall = time.monotonic()
 
@@ -195,8 +202,12 @@ class BridgeService:
 
     # --- who is served -----------------------------------------------------------------
     def _add_vehicle(self, sysid: int, how: str) -> Vehicle:
-        v = self.vehicles[sysid] = Vehicle(sysid, admitted_by=how,
-                                           request_backoff=STREAM_SILENCE_S)
+        v = self.vehicles[sysid] = Vehicle(
+            sysid, admitted_by=how, request_backoff=STREAM_SILENCE_S,
+            aiding=VelocityAiding(self.cfg.aid_max_age_s),
+            negotiation=StreamNegotiation(sysid, self.cfg.imu_rate, self.forced_imu,
+                                          self.cfg.aiding),
+            declination=Declination(sysid, self.cfg.declination_deg))
         self.admission.admit_vehicle(sysid)
         log.info("vehicle %d admitted (%s)", sysid, how)
         return v
@@ -267,6 +278,7 @@ class BridgeService:
             if (sysid, compid) == (self.truth or (sysid, vehicle.reference_compid())):
                 vehicle.references().add_truth(msg.time_usec * 1e-6,
                                                np.array(msg.attitude_quaternion))
+                self._position(vehicle, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
             else:
                 vehicle.refused["refs_refused"] += 1
         elif msg_id in (ID_ATTITUDE_QUATERNION, ID_ATTITUDE):
@@ -278,11 +290,27 @@ class BridgeService:
             else:
                 vehicle.references().add_vehicle_euler(msg.time_boot_ms * 1e-3, msg.roll,
                                                        msg.pitch, msg.yaw)
+        elif msg_id in VELOCITY_MESSAGE_IDS:
+            if compid != vehicle.reference_compid():
+                vehicle.refused["other_component"] += 1
+                return
+            if self.cfg.aiding:
+                vehicle.aiding.offer(msg, msg_id, arrival)
+            if msg_id == ID_GLOBAL_POSITION_INT or (
+                    msg_id == ID_GPS_RAW_INT and msg.fix_type >= mavlink.GPS_FIX_TYPE_2D_FIX):
+                self._position(vehicle, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+        elif msg_id == ID_PARAM_VALUE:
+            if compid == vehicle.autopilot_compid:
+                name = msg.param_id if isinstance(msg.param_id, str) else \
+                    msg.param_id.decode(errors="replace")
+                if vehicle.declination.on_param(name.rstrip("\x00"), float(msg.param_value)):
+                    self.pipeline.configure(vehicle.sysid,
+                                            declination_rad=vehicle.declination.rad)
         elif msg_id == ID_SYSTEM_TIME:
             if compid == vehicle.reference_compid():
                 vehicle.boot_hint = (msg.time_boot_ms * 1e-3, arrival)
         elif msg_id == ID_COMMAND_ACK:
-            vehicle.command_acks += 1
+            self._command_ack(vehicle, msg, compid)
 
     def _heartbeat(self, vehicle: Vehicle, msg: MAVLinkMessage, compid: int, link: Link,
                    now: float) -> None:
@@ -303,25 +331,61 @@ class BridgeService:
             return
         vehicle.heartbeats += 1
         vehicle.last_heartbeat = now
+        if msg.type != vehicle.mav_type:
+            if vehicle.mav_type is not None:
+                log.warning("vehicle %d: heartbeat type changed from %s to %s", vehicle.sysid,
+                            type_name(vehicle.mav_type), type_name(msg.type))
+            vehicle.mav_type = msg.type
+            self.pipeline.configure(vehicle.sysid, model=model_of(msg.type))
+        if msg.autopilot != vehicle.autopilot:
+            self._autopilot_known(vehicle, msg.autopilot)
         vehicle.link, vehicle.address = link, link.last_addr
-        if vehicle.stream_requests == 0:
-            self._request_stream(vehicle)
+        self._pump_requests(vehicle)
+
+    def _position(self, vehicle: Vehicle, lat: float, lon: float, alt_m: float) -> None:
+        """A position of the vehicle: the World Magnetic Model's declination there, unless
+        the user or the autopilot said (bridge.declination)."""
+        if vehicle.declination.on_position(lat, lon, alt_m):
+            self.pipeline.configure(vehicle.sysid, declination_rad=vehicle.declination.rad)
+
+    def _autopilot_known(self, vehicle: Vehicle, autopilot: int) -> None:
+        """What the autopilot is decides what its RAW_IMU integers mean (unless --board
+        says) and which IMU stream to ask it for."""
+        vehicle.autopilot = autopilot
+        if self.cfg.board is None:
+            board = board_for(autopilot)
+            if self.ingest.set_board(vehicle.sysid, board_profile(board)):
+                log.info("vehicle %d: RAW_IMU read as %s units", vehicle.sysid, board)
+                if vehicle.primary is not None and vehicle.primary.msg == ID_RAW_IMU:
+                    self._forget_source(vehicle.primary)
+                    vehicle.primary = None
+        vehicle.negotiation.start(autopilot)
+        vehicle.declination.plan(autopilot)
+
+    def _command_ack(self, vehicle: Vehicle, msg: MAVLinkMessage, compid: int) -> None:
+        """COMMAND_ACK for one of our SET_MESSAGE_INTERVAL requests: on to the next."""
+        vehicle.command_acks += 1
+        ours = getattr(msg, "target_component", 0) in (0, self.cfg.component_id)
+        if compid != vehicle.autopilot_compid or not ours or \
+                msg.command != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return
+        vehicle.negotiation.on_ack(msg.result, time.monotonic())
+        self._pump_requests(vehicle)
 
     def _imu(self, vehicle: Vehicle, msg: MAVLinkMessage, link: Link, arrival: float,
              now: float) -> None:
         key = self.ingest.key_of(msg)
         assert key is not None
         old = vehicle.primary
-        use, new = vehicle.choose_source(key, now, self.cfg.imu_id, self.imu_msg_id,
+        use, new = vehicle.choose_source(key, now, self.cfg.imu_id,
+                                         vehicle.negotiation.preferred_id,
                                          self.cfg.source_timeout_s)
         if not use:
             return
         if new:
             for stale in (old, key):
                 if stale is not None:
-                    self.ingest.forget(stale)
-                    self.pipeline.forget(stale)
-                    self.output.forget(stale)
+                    self._forget_source(stale)
         state = self.ingest.sources.get(key)
         if state is not None:
             state.clock.boot_hint = vehicle.boot_hint
@@ -332,10 +396,18 @@ class BridgeService:
         vehicle.request_backoff = STREAM_SILENCE_S
         if vehicle.autopilot_compid is None or key.compid == vehicle.autopilot_compid:
             vehicle.link, vehicle.address = link, link.last_addr
+        aiding = vehicle.aiding if self.cfg.aiding else None
+        negotiation = vehicle.negotiation
         for sample in samples:
+            negotiation.observe(key.msg, sample.t)
             if sample.restart == "reboot" and vehicle.refs is not None:
                 vehicle.refs = None  # the references' clock restarted too
-            est = self.pipeline.process(sample)
+            vel, vel_age = None, 0.0
+            if aiding is not None:
+                if sample.restart is not None:
+                    aiding.forget_pending()
+                vel, vel_age = aiding.take(sample.t, sample.arrival)
+            est = self.pipeline.process(sample, vel, vel_age)
             if est.initialising:
                 self.output.hold(est)
             else:
@@ -343,33 +415,53 @@ class BridgeService:
             if self.mqtt is not None:
                 self._maybe_publish_estimates(vehicle, est)
 
-    # --- IMU stream requests -------------------------------------------------------------
-    def _request_stream(self, vehicle: Vehicle) -> None:
-        """MAV_CMD_SET_MESSAGE_INTERVAL for the configured IMU message and rate, to the
-        vehicle's own address only."""
-        if vehicle.link is None:
+    # --- stream requests -----------------------------------------------------------------
+    def _forget_source(self, key) -> None:
+        self.ingest.forget(key)
+        self.pipeline.forget(key)
+        self.output.forget(key)
+
+    def _pump_requests(self, vehicle: Vehicle) -> None:
+        """Send the vehicle's next SET_MESSAGE_INTERVAL if one is due (see
+        bridge.negotiate), to its own address only, while its autopilot is heard."""
+        if vehicle.link is None or vehicle.autopilot_compid is None:
             return
+        if time.monotonic() - vehicle.last_heartbeat > HEARTBEAT_ALIVE_S:
+            return  # nobody there to ask
+        now = time.monotonic()
+        req = vehicle.negotiation.next_send(now)
+        if req is not None:
+            self._send_request(vehicle, req)
+        name = vehicle.declination.param_to_send(now)
+        if name is not None:
+            read = mavlink.MAVLink_param_request_read_message(
+                vehicle.sysid, vehicle.autopilot_compid, name.encode(), -1)
+            vehicle.link.send_to(read, vehicle.sysid, self.cfg.component_id, vehicle.address)
+            log.info("asked vehicle %d for %s", vehicle.sysid, name)
+
+    def _send_request(self, vehicle: Vehicle, req: Request) -> None:
         cmd = mavlink.MAVLink_command_long_message(
             vehicle.sysid, vehicle.autopilot_compid or 1,
             mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-            float(self.imu_msg_id), 1e6 / self.cfg.imu_rate, 0, 0, 0, 0, 0)
+            float(req.msg_id), req.interval_us, 0, 0, 0, 0, 0)
         vehicle.link.send_to(cmd, vehicle.sysid, self.cfg.component_id, vehicle.address)
         vehicle.stream_requests += 1
-        vehicle.next_request = time.monotonic() + vehicle.request_backoff
-        log.info("asked vehicle %d for %s at %g Hz", vehicle.sysid, self.cfg.imu_message,
-                 self.cfg.imu_rate)
+        log.info("asked vehicle %d for %s at %g Hz", vehicle.sysid, req.name, req.rate_hz)
 
     def _request_streams(self) -> None:
+        """Retries (no answer yet), and the IMU stream asked for again when it stopped
+        coming, backing off to STREAM_RETRY_MAX_S."""
         now = time.monotonic()
         for vehicle in self.vehicles.values():
-            if vehicle.autopilot_compid is None or now < vehicle.next_request:
+            if vehicle.autopilot_compid is None:
                 continue
-            if now - vehicle.last_heartbeat > HEARTBEAT_ALIVE_S:
-                continue  # nobody there to ask
-            if now - vehicle.last_imu > STREAM_SILENCE_S:
-                self._request_stream(vehicle)
+            if now >= vehicle.next_request and now - vehicle.last_imu > STREAM_SILENCE_S \
+                    and vehicle.stream_requests > 0:
+                vehicle.negotiation.repeat_imu()
+                vehicle.next_request = now + vehicle.request_backoff
                 vehicle.request_backoff = min(2.0 * vehicle.request_backoff,
                                               STREAM_RETRY_MAX_S)
+            self._pump_requests(vehicle)
 
     # --- MQTT ----------------------------------------------------------------------------
     def _maybe_publish_estimates(self, vehicle: Vehicle, est: Estimate) -> None:
@@ -437,6 +529,10 @@ class BridgeService:
                 for ref, by_label in compare_all(src.history, vehicle.refs,
                                                  self.cfg.window_s).items():
                     compare[ref] = {label: c.to_dict() for label, c in by_label.items()}
+        own = None
+        if vehicle.refs is not None:
+            c = vehicle_against_truth(vehicle.refs, self.cfg.window_s)
+            own = c.to_dict() if c is not None else None
         return {
             "sysid": vehicle.sysid, "time_s": t_last, "samples": samples,
             "input_rate_hz": round(rate, 1), "sources": [list(k) for k in sources],
@@ -447,9 +543,26 @@ class BridgeService:
             "sent": self.output.sent.get(vehicle.sysid, 0),
             "held_initialising": self.output.held.get(vehicle.sysid, 0),
             "latency_ms": self.output.latency_percentiles_ms(),
-            "estimator_counters": counters, "compare": compare,
+            "estimator_counters": counters, "compare": compare, "vehicle_vs_truth": own,
             "stream_requests": vehicle.stream_requests,
+            "imu_stream": vehicle.negotiation.status(),
+            "board": self.ingest.board_of(vehicle.sysid).name,
+            "declination": vehicle.declination.status(),
+            "vehicle": self._vehicle_description(vehicle),
+            "aiding": {**vehicle.aiding.status(), "enabled": self.cfg.aiding,
+                       "aided_samples": src.aided if src is not None else 0},
         }
+
+    def _vehicle_description(self, vehicle: Vehicle) -> dict[str, Any]:
+        """What the heartbeat says the vehicle is, and what that made of the estimators."""
+        model = model_of(vehicle.mav_type)
+        autopilot = None
+        if vehicle.autopilot is not None:
+            entry = mavlink.enums["MAV_AUTOPILOT"].get(vehicle.autopilot)
+            autopilot = entry.name if entry is not None else str(vehicle.autopilot)
+        return {"autopilot": autopilot, "type": type_name(vehicle.mav_type), "model": model,
+                "estimators": {spec.label: describe(spec, model)
+                               for spec in self.pipeline.specs}}
 
     def link_status(self) -> dict[str, Any]:
         c = self.link.codec.stats

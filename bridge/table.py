@@ -51,11 +51,14 @@ def render(service: BridgeService) -> str:
             f"{d['nonfinite']:d}".ljust(62) +
             f"{st['link']['lost']:5d}  {_fmt(lat.get('p50'), '5.2f')}/"
             f"{_fmt(lat.get('p99'), '5.2f')}")
+    for sysid, st in sorted(service.last_status.items()):
+        lines.extend(vehicle_lines(sysid, st))
     lines.append("")
     lines.append(" SYS  ESTIMATOR             ROLL   PITCH     YAW   "
                  "TRUTH tot/head/incl lag ms   VEHICLE tot/head/incl off ms")
     for key, src in sorted(service.pipeline.sources.items()):
-        compare = service.last_status.get(key.sysid, {}).get("compare", {})
+        st = service.last_status.get(key.sysid, {})
+        compare = st.get("compare", {})
         for i, (label, est) in enumerate(zip(src.labels, src.estimators, strict=True)):
             roll, pitch, yaw = (math.degrees(a) for a in euler_zyx(est.q))
             mark = "*" if i == 0 else " "
@@ -63,10 +66,56 @@ def render(service: BridgeService) -> str:
                 f" {key.sysid:3d}  {(label + mark)[:18]:18s} {roll:7.1f} {pitch:7.1f} "
                 f"{yaw:7.1f}   {_cmp(compare.get('truth', {}).get(label))}   "
                 f"{_cmp(compare.get('vehicle', {}).get(label))}")
+        own = _own_attitude(service, key.sysid)
+        if own is not None or st.get("vehicle_vs_truth"):
+            roll, pitch, yaw = own if own is not None else (math.nan,) * 3
+            lines.append(f" {key.sysid:3d}  {'(vehicle own)':18s} {_fmt(roll, '7.1f')} "
+                         f"{_fmt(pitch, '7.1f')} {_fmt(yaw, '7.1f')}   "
+                         f"{_cmp(st.get('vehicle_vs_truth'))}   {_cmp(None)}")
     lines.append("")
     lines.append(" * = primary (sent as ATTITUDE_QUATERNION/ATTITUDE); errors are rolling RMS "
                  f"over {service.cfg.window_s:g} s")
     return "\n".join(lines)
+
+
+def _own_attitude(service: BridgeService, sysid: int) -> tuple[float, ...] | None:
+    """The vehicle's latest own attitude (roll, pitch, yaw in degrees), if it sends one."""
+    vehicle = service.vehicles.get(sysid)
+    if vehicle is None or vehicle.refs is None:
+        return None
+    _, q = vehicle.refs.series["vehicle"].snapshot(vehicle.refs.series["vehicle"].last_t)
+    if not len(q):
+        return None
+    return tuple(math.degrees(a) for a in euler_zyx(q[-1]))
+
+
+def vehicle_lines(sysid: int, st: dict[str, Any]) -> list[str]:
+    """What the bridge learned about a vehicle and made of it: the autopilot and vehicle
+    model, the IMU stream negotiated, the declination and its source, the aiding."""
+    v = st.get("vehicle", {})
+    models = ", ".join(f"{k} {d}" for k, d in v.get("estimators", {}).items() if d != "-")
+    ap = (v.get("autopilot") or "no heartbeat").removeprefix("MAV_AUTOPILOT_")
+    line = f" {sysid:3d}  {ap} {v.get('type') or ''} ({v.get('model', 'unknown')}"
+    line += f": {models})" if models else ")"
+    s = st.get("imu_stream", {})
+    achieved = _fmt(s.get("achieved_hz"), ".0f").strip()
+    flag = "  BELOW REQUEST" if s.get("below_request") else ""
+    refused = f", refused {'; '.join(s['refused'])}" if s.get("refused") else ""
+    imu = (f"       IMU {s.get('message') or '-'} {achieved}/{s.get('requested_hz', 0):g} Hz "
+           f"({s.get('state', '-')}{refused}), board {st.get('board', '-')}{flag}")
+    d = st.get("declination", {})
+    a = st.get("aiding", {})
+    if not a.get("enabled", True):
+        aid = "aiding off"
+    elif a.get("source"):
+        aid = (f"aiding {a['source']} {_fmt(a.get('rate_hz'), '.1f').strip()} Hz, age "
+               f"{_fmt(a.get('median_age_ms'), '.0f').strip()} ms"
+               f"{' (by arrival)' if a.get('stamp') == 'arrival' else ''}")
+    else:
+        aid = "no velocity aiding (none received)"
+    decl = (f"       declination {d.get('deg', 0.0):+.2f}° ({d.get('source', 'none')}"
+            f"{': ' + d['detail'] if d.get('detail') else ''}), {aid}")
+    return [line, imu, decl]
 
 
 class LiveTable:
@@ -97,6 +146,7 @@ def summary(service: BridgeService) -> str:
                      f"link lost {st['link']['lost']}, refused {refused or 'none'}, "
                      f"restarts {st['restarts']} ({st['held_initialising']} estimates "
                      f"held while initialising)")
+        lines.extend(vehicle_lines(sysid, st))
     link = service.link_status()
     causes = {k: link[k] for k in ("bad_crc", "bad_frame", "truncated", "unsigned_rejected",
                                    "unsigned_accepted", "bad_signature", "replayed",

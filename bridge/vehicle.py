@@ -19,7 +19,9 @@ References for the live comparison count only from the vehicle's autopilot compo
 (truth from the configured source, by default that same component): an attitude
 injected by another sender must not decide what the bridge reports as its error.
 
-The object is also the home of later per-vehicle inputs (velocity, parameters).
+The object is also the home of the vehicle's other inputs: what its heartbeat says it
+is (autopilot, MAV_TYPE: the vehicle model), its velocity for aiding
+(:mod:`bridge.aiding`).
 """
 
 from __future__ import annotations
@@ -27,8 +29,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from .aiding import VelocityAiding
 from .compare import References
+from .declination import Declination
 from .ingest import SourceKey
+from .negotiate import StreamNegotiation
 from .sequence import SequenceTracker
 
 #: Per-vehicle sequence trackers (one per sending component) kept at most.
@@ -46,6 +51,8 @@ class Vehicle:
     sysid: int
     admitted_by: str = CONFIGURED
     autopilot_compid: int | None = None
+    autopilot: int | None = None  # MAV_AUTOPILOT_* of its heartbeat
+    mav_type: int | None = None  # MAV_TYPE_* of its heartbeat
     heartbeats: int = 0
     last_heartbeat: float = 0.0  # monotonic
     link: Any = None  # where it talks from: the link and address of its last message
@@ -61,6 +68,10 @@ class Vehicle:
     command_acks: int = 0
     boot_hint: tuple[float, float] | None = None  # SYSTEM_TIME: (board s, perf_counter)
     refs: References | None = None
+    aiding: VelocityAiding = field(default_factory=VelocityAiding)
+    declination: Declination = field(default_factory=lambda: Declination(0))
+    negotiation: StreamNegotiation = field(  # the service gives each its settings
+        default_factory=lambda: StreamNegotiation(0, 250.0))
     sequences: dict[int, SequenceTracker] = field(default_factory=dict)
     next_mqtt_t: dict[Any, float] = field(default_factory=dict)
     samples_at_last_status: int = 0

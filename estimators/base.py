@@ -180,6 +180,19 @@ class Estimator:
         w = Q.from_axis_angle(np.array([0.0, 0.0, 1.0]), self.params.declination)
         return Q.ned_to_enu(w) if self.world == "ENU" else w
 
+    def set_declination(self, declination: float) -> None:
+        """Report true north with another declination [rad] from the next output on.
+
+        The estimate lives in magnetic north (the magnetometer's reference), so only
+        the output rotation changes and nothing re-converges: for a live source whose
+        declination becomes known after it started (an autopilot parameter, the first
+        position fix). Velocities given later are taken in the new true north.
+        """
+        params = dataclasses.replace(self.params, declination=float(declination))
+        _check_common(params)
+        self.params = params
+        self._common[_core.P_OUT:_core.P_OUT + 4] = self.output_rotation
+
     def _pack_params(self, p: CommonParams) -> np.ndarray:
         return np.zeros(1)
 

@@ -147,10 +147,12 @@ def raw_imu(time_usec: int, q: np.ndarray, omega: np.ndarray = ZERO3,
     return mavlink.MAVLink_raw_imu_message(time_usec, *acc, *gyr, *mag, imu_id, 2500)
 
 
-def autopilot_heartbeat() -> mavlink.MAVLink_heartbeat_message:
-    """What a PX4 quadrotor announces itself with."""
-    return mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_QUADROTOR,
-                                             mavlink.MAV_AUTOPILOT_PX4, 0, 0, 4, 3)
+def autopilot_heartbeat(mav_type: int = mavlink.MAV_TYPE_GENERIC
+                        ) -> mavlink.MAVLink_heartbeat_message:
+    """A PX4 autopilot's heartbeat. Generic vehicle type by default: the synthetic
+    motions here (a board held tilted and turned in place) are nothing a multirotor
+    can fly, so the bridge must not run its multirotor model on them."""
+    return mavlink.MAVLink_heartbeat_message(mav_type, mavlink.MAV_AUTOPILOT_PX4, 0, 0, 4, 3)
 
 
 def attitude_of(msgs: list) -> np.ndarray:

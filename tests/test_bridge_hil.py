@@ -19,6 +19,7 @@ import estimators
 from bridge.emulator import emulator_declination_deg
 from estimators import metrics
 from estimators import quat as Q
+from estimators.eskf import MULTIROTOR_DRAG_PER_S
 from hil import Emulator, EmulatorConfig, FaultConfig, simulate
 from hil.sensors.hmc5883l import Hmc5883lConfig
 from hil.sensors.mpu6050 import Mpu6050Config
@@ -68,11 +69,13 @@ def truth_at_outputs(listener: UdpListener):
 
 
 def offline_run(cfg: EmulatorConfig):
-    """(recording, primary estimate) of the same samples without faults, offline."""
+    """(recording, primary estimate) of the same samples without faults, offline, with
+    the rotor-drag model the bridge picks for the emulator's quadrotor heartbeat."""
     rec = simulate(replace(cfg, faults=FaultConfig()))
     dt = np.diff(rec.time_us, prepend=rec.time_us[0] - round(1e6 / cfg.imu_rate_hz)) * 1e-6
     q = estimators.batch(PRIMARY, rec.gyr, rec.acc, rec.mag, rate_hz=cfg.imu_rate_hz, dt=dt,
-                         declination=math.radians(emulator_declination_deg()))
+                         declination=math.radians(emulator_declination_deg()),
+                         drag=MULTIROTOR_DRAG_PER_S)
     return rec, q
 
 

@@ -1,0 +1,125 @@
+"""Where a vehicle's magnetic declination comes from, without the user typing a number.
+
+The estimators find magnetic north; MAVLink consumers, the truth and a GPS velocity
+are in true north. The declination between them is, in order of preference:
+
+1. ``--declination-deg`` when given (it is the user's word, for every vehicle);
+2. the vehicle's own parameter, read with PARAM_REQUEST_READ: PX4 ``EKF2_MAG_DECL``
+   [deg], ArduPilot ``COMPASS_DEC`` [rad]: what the autopilot's own estimator uses
+   (both fill it from their World Magnetic Model tables). A value of exactly 0 is the
+   parameters' default before the autopilot has set it, so it is not taken;
+3. the World Magnetic Model (``imu.geomag``, WMM2025, today's date) at the vehicle's
+   position (GLOBAL_POSITION_INT, GPS_RAW_INT with a fix, or HIL_STATE_QUATERNION),
+   computed again when the vehicle has moved more than ``RECOMPUTE_DEG`` of latitude
+   or longitude;
+4. else 0 (magnetic north reported as true north), shown as ``none``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from imu import geomag
+
+from .mav import mavlink
+
+log = logging.getLogger(__name__)
+
+OPTION, PARAMETER, WMM, NONE = "option", "parameter", "wmm", "none"
+#: Declination parameter of each autopilot and its unit.
+PARAMETERS = {mavlink.MAV_AUTOPILOT_PX4: ("EKF2_MAG_DECL", "deg"),
+              mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: ("COMPASS_DEC", "rad")}
+PARAM_TIMEOUT_S = 1.0
+PARAM_TRIES = 3
+#: The WMM is evaluated again after the vehicle moved this far [deg of lat/lon]
+#: (~50 km; the declination changes by well under 0.1° over such a distance at most
+#: latitudes).
+RECOMPUTE_DEG = 0.5
+
+
+@dataclass
+class Declination:
+    """The declination of one vehicle and where it came from."""
+
+    sysid: int
+    option_deg: float | None = None
+    deg: float = 0.0
+    source: str = NONE
+    detail: str = ""
+    param: tuple[str, str] | None = None  # (name, unit) to ask the autopilot for
+    param_tries: int = 0
+    param_sent_at: float = -math.inf
+    param_answered: bool = False
+    wmm_at: tuple[float, float] | None = None  # (lat, lon) of the last WMM evaluation
+
+    def __post_init__(self) -> None:
+        if self.option_deg is not None:
+            self.deg, self.source, self.detail = float(self.option_deg), OPTION, "--declination-deg"
+
+    @property
+    def rad(self) -> float:
+        return math.radians(self.deg)
+
+    def plan(self, autopilot: int) -> None:
+        """The autopilot is known: which parameter to read (none with the option)."""
+        self.param = None if self.option_deg is not None else PARAMETERS.get(autopilot)
+        self.param_tries = 0
+        self.param_answered = False
+
+    def param_to_send(self, now: float) -> str | None:
+        """The parameter name to ask for now (first try or a retry), else None."""
+        if self.param is None or self.param_answered or self.param_tries >= PARAM_TRIES:
+            return None
+        if now - self.param_sent_at < PARAM_TIMEOUT_S:
+            return None
+        self.param_tries += 1
+        self.param_sent_at = now
+        return self.param[0]
+
+    def on_param(self, name: str, value: float) -> bool:
+        """A PARAM_VALUE from the autopilot; True if the declination changed."""
+        if self.param is None or name != self.param[0]:
+            return False
+        self.param_answered = True
+        deg = value if self.param[1] == "deg" else math.degrees(value)
+        if not (math.isfinite(deg) and abs(deg) <= 180.0):
+            log.warning("vehicle %d: %s = %r is no declination; not used", self.sysid, name,
+                        value)
+            return False
+        if deg == 0.0:
+            log.info("vehicle %d: %s is 0 (not set by the autopilot); not used", self.sysid,
+                     name)
+            return False
+        return self._set(deg, PARAMETER, name)
+
+    def on_position(self, lat_deg: float, lon_deg: float, alt_m: float) -> bool:
+        """A position of the vehicle; True if the declination changed (WMM)."""
+        if self.source in (OPTION, PARAMETER):
+            return False
+        if not (math.isfinite(lat_deg) and math.isfinite(lon_deg) and abs(lat_deg) <= 90.0
+                and abs(lon_deg) <= 180.0) or (lat_deg == 0.0 and lon_deg == 0.0):
+            return False  # (0, 0): the "no position" value
+        if self.wmm_at is not None and abs(lat_deg - self.wmm_at[0]) < RECOMPUTE_DEG and \
+                abs(lon_deg - self.wmm_at[1]) < RECOMPUTE_DEG:
+            return False
+        try:
+            deg = geomag.declination_deg(lat_deg, lon_deg, alt_m if math.isfinite(alt_m)
+                                         else 0.0)
+        except ValueError:
+            return False
+        self.wmm_at = (lat_deg, lon_deg)
+        return self._set(deg, WMM, f"{geomag.MODEL_NAME} at {lat_deg:.4f},{lon_deg:.4f}")
+
+    def _set(self, deg: float, source: str, detail: str) -> bool:
+        changed = deg != self.deg or source != self.source
+        if changed:
+            log.info("vehicle %d: magnetic declination %+.2f° from %s (%s)", self.sysid, deg,
+                     source, detail)
+        self.deg, self.source, self.detail = deg, source, detail
+        return changed
+
+    def status(self) -> dict[str, Any]:
+        return {"deg": round(self.deg, 3), "source": self.source, "detail": self.detail}

@@ -1,0 +1,289 @@
+"""Which IMU stream to ask a vehicle for, at what rate, and whether it delivered.
+
+Autopilots differ in what they stream and what they refuse, and a request sent into
+the void looks exactly like one that worked until the samples fail to come. So the
+bridge negotiates, per vehicle, from what its HEARTBEAT says it is:
+
+* PX4: HIGHRES_IMU (SI floats, microsecond stamps), else SCALED_IMU. PX4 has no RAW_IMU
+  stream: asked for one it answers MAV_RESULT_FAILED; unasked, it streams HIGHRES_IMU
+  at 50 Hz on an onboard link.
+* ArduPilot: RAW_IMU (mG, mrad/s, mGauss: board profile ``ardupilot``), else
+  SCALED_IMU, SCALED_IMU2.
+* anything else (the seeds' STM32 board, other firmware): RAW_IMU (board profile
+  ``gy86``), else SCALED_IMU, HIGHRES_IMU.
+
+``--imu-message NAME`` forces one message (``A,B``: this order of candidates). Each
+candidate is asked for with MAV_CMD_SET_MESSAGE_INTERVAL at ``--imu-rate``, one command
+at a time (a COMMAND_ACK does not say which message it answers): ACCEPTED settles it,
+a refusal (FAILED, DENIED, UNSUPPORTED) is logged at WARNING and the next candidate is
+asked, no answer after ``MAX_TRIES`` tries ``ACK_TIMEOUT_S`` apart is logged and the
+bridge uses whatever the vehicle streams. The achieved rate is measured on the
+stream's own time stamps (the median step, so a fast-forwarded replay measures the
+same as a live link), and a rate below ``RATE_SHORTFALL`` of the request is logged at
+WARNING once it has held for ``RATE_JUDGED_AFTER_S`` of samples.
+
+For PX4 and ArduPilot the velocity streams for aiding (:mod:`bridge.aiding`) are asked
+for too, after the IMU: LOCAL_POSITION_NED at 50 Hz and GPS_RAW_INT at 10 Hz; their
+refusal is only noted (other sources may still come).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .ingest import IMU_MESSAGE_NAMES
+from .mav import mavlink
+
+log = logging.getLogger(__name__)
+
+PX4, ARDUPILOT = mavlink.MAV_AUTOPILOT_PX4, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+IMU_CANDIDATES = {
+    PX4: ("HIGHRES_IMU", "SCALED_IMU"),
+    ARDUPILOT: ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2"),
+}
+OTHER_CANDIDATES = ("RAW_IMU", "SCALED_IMU", "HIGHRES_IMU")
+#: Velocity streams asked from autopilots that have them, with the rate asked [Hz].
+AIDING_STREAMS = (("LOCAL_POSITION_NED", 50.0), ("GPS_RAW_INT", 10.0))
+#: RAW_IMU units by autopilot (the board profile when ``--board`` is not given).
+RAW_IMU_BOARD = {ARDUPILOT: "ardupilot"}
+DEFAULT_BOARD = "gy86"
+
+ACK_TIMEOUT_S = 1.0
+MAX_TRIES = 3
+#: Achieved below this fraction of the requested rate: logged as a shortfall.
+RATE_SHORTFALL = 0.9
+RATE_JUDGED_AFTER_S = 1.0  # board time of samples before the rate is judged
+_RATE_STEPS = 64  # median over this many recent time steps
+
+ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
+RETRY_LATER = frozenset((mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+                         mavlink.MAV_RESULT_IN_PROGRESS))
+# States of the IMU negotiation.
+WAITING, ASKING, SETTLED, REFUSED, NO_ANSWER = (
+    "waiting", "asking", "accepted", "refused", "no_answer")
+
+
+def result_name(result: int) -> str:
+    entry = mavlink.enums["MAV_RESULT"].get(result)
+    return entry.name if entry is not None else f"MAV_RESULT {result}"
+
+
+def board_for(autopilot: int | None) -> str:
+    """What the integers of this autopilot's RAW_IMU mean (imu.boards profile name)."""
+    return RAW_IMU_BOARD.get(autopilot, DEFAULT_BOARD)
+
+
+def parse_forced(text: str | None) -> tuple[str, ...] | None:
+    """``--imu-message``: None (negotiate), one name or a comma-separated order."""
+    if text is None:
+        return None
+    names = tuple(n.strip().upper() for n in text.split(",") if n.strip())
+    unknown = [n for n in names if n not in IMU_MESSAGE_NAMES]
+    if not names or unknown:
+        raise ValueError(f"unknown IMU message {text!r}; valid: {sorted(IMU_MESSAGE_NAMES)} "
+                         f"(one, or several separated by commas in the order to try)")
+    return names
+
+
+@dataclass
+class Request:
+    """One SET_MESSAGE_INTERVAL waiting for its COMMAND_ACK."""
+
+    name: str
+    rate_hz: float
+    imu: bool
+    tries: int = 0
+    sent_at: float = -math.inf
+
+    @property
+    def msg_id(self) -> int:
+        return getattr(mavlink, f"MAVLINK_MSG_ID_{self.name}")
+
+    @property
+    def interval_us(self) -> float:
+        return 1e6 / self.rate_hz
+
+
+@dataclass
+class StreamNegotiation:
+    """The stream requests of one vehicle (see module docstring)."""
+
+    sysid: int
+    rate_hz: float
+    forced: tuple[str, ...] | None = None
+    aiding: bool = True
+    autopilot: int | None = None
+    candidates: tuple[str, ...] = ()
+    index: int = 0  # current IMU candidate
+    state: str = WAITING
+    queue: deque = field(default_factory=deque)  # Requests not sent yet
+    outstanding: Request | None = None
+    refusals: list[str] = field(default_factory=list)
+    aiding_results: dict[str, str] = field(default_factory=dict)
+    commands_sent: int = 0
+    acks: int = 0
+    _steps: deque = field(default_factory=lambda: deque(maxlen=_RATE_STEPS))
+    _last_t: float | None = None
+    _judge_from: float | None = None  # board time from which the rate is judged
+    _short: bool = False  # a shortfall has been logged (and not recovered)
+    _msg_observed: int | None = None
+
+    # --- plan -----------------------------------------------------------------------
+    def start(self, autopilot: int) -> None:
+        """The vehicle's autopilot is known: plan and queue the requests."""
+        self.autopilot = autopilot
+        self.candidates = self.forced or IMU_CANDIDATES.get(autopilot, OTHER_CANDIDATES)
+        self.index = 0
+        self.refusals.clear()
+        self.queue.clear()
+        self.outstanding = None
+        self.state = ASKING
+        self.queue.append(Request(self.candidates[0], self.rate_hz, imu=True))
+
+    @property
+    def message(self) -> str | None:
+        """The IMU message asked for / settled on (None before the heartbeat)."""
+        return self.candidates[self.index] if self.candidates else None
+
+    @property
+    def preferred_id(self) -> int:
+        """Message id a primary IMU stream should be of (-1: any)."""
+        if self.state in (ASKING, SETTLED) and self.message is not None:
+            return IMU_MESSAGE_NAMES[self.message]
+        return -1
+
+    def repeat_imu(self) -> None:
+        """Ask again for the settled (or current) IMU stream: it stopped coming."""
+        if self.message is None or self.state == REFUSED:
+            return
+        if self.outstanding is None or not self.outstanding.imu:
+            self.queue.appendleft(Request(self.message, self.rate_hz, imu=True))
+
+    # --- the command exchange --------------------------------------------------------
+    def next_send(self, now: float) -> Request | None:
+        """The request to send now (new, or a retry), or None."""
+        req = self.outstanding
+        if req is not None:
+            if now - req.sent_at < ACK_TIMEOUT_S:
+                return None
+            if req.tries >= MAX_TRIES:
+                self._no_answer(req)
+                req = None
+        if req is None:
+            if not self.queue:
+                return None
+            req = self.outstanding = self.queue.popleft()
+        req.tries += 1
+        req.sent_at = now
+        self.commands_sent += 1
+        return req
+
+    def on_ack(self, result: int, now: float) -> None:
+        """A COMMAND_ACK for SET_MESSAGE_INTERVAL from the vehicle."""
+        req = self.outstanding
+        self.acks += 1
+        if req is None:
+            return  # a late answer to a request already given up on
+        if result in RETRY_LATER:
+            req.sent_at = now  # keep waiting (IN_PROGRESS) or ask again after the timeout
+            return
+        self.outstanding = None
+        if not req.imu:
+            self.aiding_results[req.name] = result_name(result)
+            if result != ACCEPTED:
+                log.info("vehicle %d: %s at %g Hz refused (%s)", self.sysid, req.name,
+                         req.rate_hz, result_name(result))
+            return
+        if result == ACCEPTED:
+            if self.state != SETTLED:
+                log.info("vehicle %d: %s at %g Hz accepted", self.sysid, req.name, req.rate_hz)
+            self._settle(SETTLED)
+            return
+        self.refusals.append(f"{req.name}: {result_name(result)}")
+        if self.index + 1 < len(self.candidates):
+            self.index += 1
+            log.warning("vehicle %d refused %s at %g Hz (%s); asking for %s instead",
+                        self.sysid, req.name, req.rate_hz, result_name(result), self.message)
+            self.queue.appendleft(Request(self.message, self.rate_hz, imu=True))
+        else:
+            log.warning("vehicle %d refused %s at %g Hz (%s); no other IMU message to ask "
+                        "for: using the IMU stream it sends", self.sysid, req.name,
+                        req.rate_hz, result_name(result))
+            self._settle(REFUSED)
+
+    def _no_answer(self, req: Request) -> None:
+        self.outstanding = None
+        if req.imu:
+            log.warning("vehicle %d does not answer SET_MESSAGE_INTERVAL (%s at %g Hz, %d "
+                        "tries): using the IMU stream it sends", self.sysid, req.name,
+                        req.rate_hz, req.tries)
+            self._settle(NO_ANSWER)
+        else:
+            self.aiding_results[req.name] = "no answer"
+
+    def _settle(self, state: str) -> None:
+        first = self.state == ASKING
+        self.state = state
+        self._steps.clear()
+        self._last_t = None
+        self._judge_from = None
+        self._short = False
+        if first and self.aiding and self.autopilot in IMU_CANDIDATES:
+            self.queue.extend(Request(name, rate, imu=False) for name, rate in AIDING_STREAMS)
+
+    # --- the achieved rate -----------------------------------------------------------
+    def observe(self, msg_id: int, t: float) -> None:
+        """An accepted sample of the primary IMU stream at board time ``t``."""
+        if msg_id != self._msg_observed:
+            self._msg_observed = msg_id
+            self._steps.clear()
+            self._last_t = None
+            self._judge_from = None
+        if self._last_t is not None:
+            step = t - self._last_t
+            if step > 0.0:
+                self._steps.append(step)
+            elif step < -1.0:  # a new timeline: measure afresh
+                self._steps.clear()
+                self._judge_from = None
+        self._last_t = t
+        if self._judge_from is None:
+            self._judge_from = t + RATE_JUDGED_AFTER_S
+        elif t >= self._judge_from and self.state not in (WAITING, ASKING):
+            self._judge()
+
+    @property
+    def achieved_hz(self) -> float | None:
+        if len(self._steps) < 8:
+            return None
+        return 1.0 / float(np.median(self._steps))
+
+    def _judge(self) -> None:
+        achieved = self.achieved_hz
+        if achieved is None:
+            return
+        name = mavlink.mavlink_map[self._msg_observed].msgname
+        short = achieved < RATE_SHORTFALL * self.rate_hz
+        if short and not self._short:
+            log.warning("vehicle %d: IMU %s at %.0f Hz, below the %g Hz asked", self.sysid,
+                        name, achieved, self.rate_hz)
+        elif self._short and not short:
+            log.info("vehicle %d: IMU %s now at %.0f Hz", self.sysid, name, achieved)
+        self._short = short
+
+    def status(self) -> dict[str, Any]:
+        achieved = self.achieved_hz
+        using = (mavlink.mavlink_map[self._msg_observed].msgname
+                 if self._msg_observed is not None else None)
+        return {"message": using, "asked": self.message, "requested_hz": self.rate_hz,
+                "achieved_hz": round(achieved, 1) if achieved is not None else None,
+                "state": self.state, "below_request": self._short,
+                "forced": self.forced is not None, "refused": list(self.refusals),
+                "commands": self.commands_sent, "acks": self.acks,
+                "aiding_streams": dict(self.aiding_results)}

@@ -98,8 +98,10 @@ class EskfParams(CommonParams):
     bias_init: float = param(0.5 * _DEG, "initial gyro-bias standard deviation [rad/s]")
     bias_max: float = param(20.0 * _DEG, "bias estimate clip per axis [rad/s] (the "
                                          "MPU6050's zero-rate offset range)")
-    tilt_init: float = param(5.0 * _DEG, "initial tilt standard deviation [rad]")
-    heading_init: float = param(10.0 * _DEG, "initial heading standard deviation [rad]")
+    tilt_init: float = param(20.0 * _DEG, "initial tilt standard deviation [rad] (a start "
+                                          "from one sample of a vibrating vehicle can be "
+                                          "this far off)")
+    heading_init: float = param(30.0 * _DEG, "initial heading standard deviation [rad]")
     velocity_rw: float = param(0.05, "velocity random walk [m/s/sqrt(s)]: how fast the "
                                      "velocity may drift from what the accelerometer says "
                                      "(accelerometer noise, scale errors, lever arm)")
@@ -209,12 +211,13 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _MAG_TURN,  # how far the body has turned since that reading was first seen [rad]
  _MAG_DT,  # time since the last magnetometer update [s]
  _MAG_REJ_T,  # heading innovations rejected for this long [s]
+ _FROM_SAMPLE,  # 1 until the first step after starting from one sample (see _first_step)
  _H,  # scratch: measurement rows (3 × _NX)
  _PHT,  # scratch: P·Hᵀ (_NX × 3)
  _K,  # scratch: gain (_NX × 3)
  _X,  # scratch: error-state correction (_NX)
  _STATE_SIZE) = _layout(3, 1, _NX * _NX, 1, 1, 3, 3, 3, 1, 3, 3, 3, 3, 3, 3, 1, 1, 1, 1, 1, 1, 1, 1,
-                        1, 1, 1, 3, 1, 3, 1, 3, 1, 1, 1, 3 * _NX, 3 * _NX, 3 * _NX, _NX)
+                        1, 1, 1, 3, 1, 3, 1, 3, 1, 1, 1, 1, 3 * _NX, 3 * _NX, 3 * _NX, _NX)
 
 
 @_core.kernel(inline="always")
@@ -547,7 +550,7 @@ def _mag_steadiness(state: np.ndarray, params: np.ndarray, mx: float, my: float,
 
 
 @_core.kernel
-def _rest_update(state: np.ndarray, params: np.ndarray, T: float) -> None:
+def _rest_update(state: np.ndarray, params: np.ndarray, T: float, aided: bool) -> None:
     """At rest the low-passed gyro is the bias. (Not a zero-velocity update: a vehicle
     cruising steadily looks just as still to the gyro and accelerometer.)"""
     _clear_rows(state, 3)
@@ -724,12 +727,13 @@ def _mag_steadiness(state: np.ndarray, params: np.ndarray, mx: float, my: float,
 
 
 @_core.kernel
-def _rest_update(state: np.ndarray, params: np.ndarray, T: float) -> None:
+def _rest_update(state: np.ndarray, params: np.ndarray, T: float, aided: bool) -> None:
     """At rest the low-passed gyro is the bias, and the vehicle is not accelerating, so
     the mean specific force is gravity: a tilt measurement (rest holds only while the
     specific force is steady, and a multirotor's changes with its speed through rotor
-    drag, so a steady cruise qualifies too — it is not accelerating either). Not a
-    zero-velocity update: that cruise is not standing still."""
+    drag, so a steady cruise qualifies too — it is not accelerating either; a vehicle
+    with aiding leaves this to its measured velocity). Not a zero-velocity update: that
+    cruise is not standing still."""
     _clear_rows(state, 3)
     for i in range(3):
         state[_H + i * _NX + _BI + i] = 1.0
@@ -737,6 +741,8 @@ def _rest_update(state: np.ndarray, params: np.ndarray, T: float) -> None:
     _kalman_update(state, params, 3, state[_GLP] - state[_core.B0],
                    state[_GLP + 1] - state[_core.B0 + 1], state[_GLP + 2] - state[_core.B0 + 2],
                    rn, rn, rn, 0.0)
+    if aided:
+        return  # the measured velocity knows better whether it is accelerating
     # world-frame mean specific force: R̂·f̄ = (g·δθ_y, −g·δθ_x, −g) for a tilt error δθ
     ft = state[_FB_T]
     fx, fy, fz = state[_FB] / ft, state[_FB + 1] / ft, state[_FB + 2] / ft
@@ -765,7 +771,7 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
     aided = now - state[_AID_T] <= params[_P_AID_TIMEOUT]
     at_rest = state[_REST_T] >= params[_P_REST_T]
     if at_rest:
-        _rest_update(state, params, T)
+        _rest_update(state, params, T, aided)
         r = _rotation(state)
     if state[_FB_T] > 0.0:
         # Velocity information: aiding, rotor drag, or the bounded-velocity prior.
@@ -800,8 +806,32 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
 
 
 @_core.kernel
+def _first_step(state: np.ndarray, params: np.ndarray, mx: float, my: float, mz: float,
+                mag_ok: bool) -> None:
+    """After starting from one accelerometer + magnetometer sample, the heading error is
+    not independent of the tilt error: the start takes the heading that puts the field's
+    east component at zero, so a tilt error δθ_N about north turns the heading by
+    tan(dip)·δθ_N. Putting that correlation into P lets every later tilt correction fix
+    the heading with it (a vibrating first sample: 14° of tilt became 24° of heading)."""
+    state[_FROM_SAMPLE] = 0.0
+    if not mag_ok:
+        return
+    en, ee, ed = _core.body_to_world(state, mx, my, mz)
+    horiz = math.sqrt(en * en + ee * ee)
+    if horiz < 1e-9 * (abs(ed) + 1e-300):
+        return
+    k = ed / horiz  # tan(dip)
+    p00 = state[_pi(_TH, _TH)]
+    state[_pi(_TH, _TH + 2)] += k * p00
+    state[_pi(_TH + 2, _TH)] += k * p00
+    state[_pi(_TH + 2, _TH + 2)] += k * k * p00
+
+
+@_core.kernel
 def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
           vx, vy, vz, v_age) -> None:
+    if state[_FROM_SAMPLE] > 0.0:
+        _first_step(state, params, mx, my, mz, mag_ok)
     b0, b1, b2 = state[_core.B0], state[_core.B0 + 1], state[_core.B0 + 2]
     grav = params[_P_GRAV]
     if acc_ok:
@@ -904,6 +934,7 @@ class Eskf(Estimator):
 
     def _init_private(self, state: np.ndarray, p: EskfParams) -> None:
         _init_covariance(state, self._params_vec)
+        state[_FROM_SAMPLE] = 0.0 if state[_core.INIT] > 0.0 else 1.0  # no q0 given
         state[_MUS] = p.drag
         state[_AID_T] = -math.inf
         state[_PEND:_PEND + 3] = math.nan

@@ -1,7 +1,7 @@
 """The strong estimator ("eskf"): bias learning, tilt, rotation, rejection, 6D, BROAD.
 
 Synthetic sensors are generated from a known truth in NED: the accelerometer reads the
-specific force ``R(q)ᵀ·([0, 0, -g] − a_lin)`` and the magnetometer ``R(q)ᵀ·field``.
+specific force ``R(q)ᵀ·(a_lin − [0, 0, g])`` and the magnetometer ``R(q)ᵀ·field``.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ def _sensors(truth: np.ndarray, lin_acc_world: np.ndarray | None = None,
     """Accelerometer and magnetometer for the attitudes ``truth`` (N, 4)."""
     body = Q.conjugate(truth)
     f = np.array([0.0, 0.0, -G]) if lin_acc_world is None else np.array([0.0, 0.0, -G]) \
-        - lin_acc_world
+        + lin_acc_world
     return Q.rotate(body, f), Q.rotate(body, field)
 
 
@@ -194,10 +194,10 @@ def test_static_tilt_is_exact_from_the_first_sample():
 
 
 def test_wrong_start_converges():
-    """q0 = level and north while the truth is tilted 18° and turned 30°: the velocity
-    prior removes the tilt within seconds (measured 0.67° at 2 s, 0.28° at 3 s), the
-    magnetometer the heading with its slower time constant (measured 8.2° after 10 s,
-    2.6° after 29 s)."""
+    """q0 = level and north while the truth is tilted 18° and turned 30°: gravity at rest
+    and the velocity prior remove the tilt within seconds (measured 0.31° at 1 s, 0.04°
+    at 2 s), the magnetometer the heading with its slower time constant (measured 2.2°
+    after 10 s, 0.6° after 29 s)."""
     rate = 400.0
     truth = _static(TILT, 30.0, rate)
     acc, mag = _sensors(truth)
@@ -205,8 +205,8 @@ def test_wrong_start_converges():
                          q0=Q.identity())
     heading, incl = _errors_deg(q, truth)
     assert incl[0] > 15.0 and heading[0] > 25.0
-    assert incl[int(2 * rate):].max() < 1.0 and incl[int(3 * rate):].max() < 0.5
-    assert heading[int(10 * rate)] < 10.0 and heading[-1] < 3.0
+    assert incl[int(1 * rate):].max() < 1.0 and incl[int(2 * rate):].max() < 0.2
+    assert heading[int(10 * rate)] < 5.0 and heading[-1] < 1.5
 
 
 @pytest.mark.parametrize("rate", [100.0, 8000.0])
@@ -235,9 +235,9 @@ def _level_hold_with(lin_acc: np.ndarray, rate: float):
 def test_shock_is_mostly_rejected():
     """A 0.2 s impact of 8 g sideways: it adds 16 m/s to the integrated velocity, which
     the bounded-velocity prior soon rejects as an outlier (flagged). The first updates of
-    the impact still pull (peak measured 2.9° against 8.3° for Mahony with kp = 0.74);
-    the tilt stays until the velocity is re-anchored (velocity_reset_time = 3 s after the
-    rejections began) and is back under 0.1° 7 s after the impact."""
+    the impact still pull (peak measured 1.8° against 8.3° for Mahony with kp = 0.74);
+    once the board is still again, the gravity it measures at rest removes that: back
+    under 0.1° 3 s after the impact (measured 0.01°)."""
     rate = 400.0
     lin = np.zeros((int(12 * rate), 3))
     shock = slice(int(2 * rate), int(2.2 * rate))
@@ -249,8 +249,8 @@ def test_shock_is_mostly_rejected():
     _, incl = _errors_deg(res.q, truth)
     mahony = estimators.batch("mahony", np.zeros_like(acc), acc, mag, rate_hz=rate, kp=0.74)
     _, incl_mahony = _errors_deg(mahony, truth)
-    assert incl.max() < 3.5 and incl.max() < incl_mahony.max() / 2.0, incl.max()
-    assert incl[shock.stop + int(7 * rate):].max() < 0.1
+    assert incl.max() < 2.5 and incl.max() < incl_mahony.max() / 3.0, incl.max()
+    assert incl[shock.stop + int(3 * rate):].max() < 0.1
 
 
 def test_manoeuvre_acceleration_is_mostly_absorbed_by_the_velocity():
@@ -291,11 +291,9 @@ def test_broken_accelerometer_cannot_tilt_the_estimate():
 def test_velocity_aiding_holds_the_tilt_in_sustained_acceleration():
     """A vehicle holding 4 m/s² for 4 s (a multirotor's acceleration leg; the
     accelerometer reads 22° of false tilt all along). Unaided, a bounded-velocity prior
-    cannot tell it from a tilt for that long (measured 21°); with the velocity measured at
-    5 Hz, 100 ms late (a GPS), the inclination error stays below 2° (measured 1.6°) with
-    the default aiding noise (0.4 m/s, chosen on real aiding sources, whose errors are
-    correlated), and below 0.2° (measured 0.07°) when the source is known to be clean
-    (vel_aid_noise = 0.1 m/s, which these exact velocities are)."""
+    cannot tell it from a tilt for that long (measured 22°); with the velocity measured at
+    5 Hz, 100 ms late (a GPS), the inclination error stays below 0.2° (measured 0.02°
+    with the default aiding noise, 0.4 m/s, and 0.04° with 0.1 m/s)."""
     rate = 200.0
     n = int(12 * rate)
     lin = np.zeros((n, 3))
@@ -315,8 +313,8 @@ def test_velocity_aiding_holds_the_tilt_in_sustained_acceleration():
     unaided = estimators.run("eskf", gyr, acc, mag, rate_hz=rate)
     incl_aided = _errors_deg(aided.q, truth)[1]
     incl_unaided = _errors_deg(unaided.q, truth)[1]
-    assert incl_aided.max() < 2.0, incl_aided.max()
-    assert incl_aided.max() < incl_unaided.max() / 10.0
+    assert incl_aided.max() < 0.2, incl_aided.max()
+    assert incl_unaided.max() > 10.0
     assert _errors_deg(clean.q, truth)[1].max() < 0.2
 
 

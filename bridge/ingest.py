@@ -48,6 +48,10 @@ MG = 9.80665e-3  # m/s^2 per milli-g
 MAG_NORM_TOLERANCE = 0.15  # relative deviation of |mag| that marks a disturbed reading
 MAG_NORM_GAIN = 0.001  # per-sample weight of the running |mag| average
 MAG_REANCHOR_S = 3.0
+#: Identical RAW_IMU readings are a stuck sensor once they have lasted this long [µs]:
+#: an MPU6050 at 8 kHz repeats itself for a few samples (its accelerometer register
+#: changes at 1 kHz, its gyro often by less than a count), never for milliseconds.
+STUCK_MIN_US = 5000
 #: Readings are implausible this far beyond the sensor's full scale (scaling, calibration).
 RANGE_MARGIN = 1.05
 
@@ -151,6 +155,9 @@ class SourceState:
     first_arrival: float = 0.0
     last_arrival: float = 0.0
     last_raw: tuple = ()  # previous RAW_IMU gyro+accel integers, to spot a stuck sensor
+    repeats: int = 0  # how many readings in a row repeated it
+    repeat_from_us: int = 0  # time_usec of the reading being repeated
+    stuck: bool = False  # the repeats have lasted STUCK_MIN_US: counted as stuck
     last_good_gyr: np.ndarray | None = None  # last unclipped gyro, held while clipped
     mag_norm: float = 0.0  # slow average of |mag| over accepted readings (0: none yet)
     mag_rejected_since: float = 0.0  # board time of the last accepted magnetometer reading
@@ -313,11 +320,20 @@ class Ingest:
             flags += ("acc_saturated",)
         if mag_overflow:
             flags += ("mag_invalid",)
-        # Noise makes two identical 6-axis raw readings in a row practically impossible:
-        # a repeat means the sensor (or its driver) re-sends old data.
+        # Noise makes a 6-axis raw reading repeated for milliseconds practically
+        # impossible: the sensor (or its driver) re-sends old data. Once a run of repeats
+        # lasts STUCK_MIN_US, all of its repeats count (those before it, at once).
         if raw == src.last_raw:
-            flags += ("stuck",)
-        src.last_raw = raw
+            src.repeats += 1
+            if src.stuck:
+                flags += ("stuck",)
+            elif m.time_usec - src.repeat_from_us >= STUCK_MIN_US and src.repeats >= 2:
+                src.stuck = True
+                src.counts["stuck"] += src.repeats - 1
+                flags += ("stuck",)
+        else:
+            src.last_raw, src.repeats, src.stuck = raw, 0, False
+            src.repeat_from_us = m.time_usec
         return self._stamp(src, key, m.time_usec, 1e-6,
                            _Pending(si[0:3], acc, mag, arrival, flags), raw)
 

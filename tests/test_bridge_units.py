@@ -310,6 +310,32 @@ def test_ingest_rejects_disturbed_magnetometer_strength():
     assert next(iter(ingest.sources.values())).counts["mag_disturbed"] == 2
 
 
+def test_ingest_counts_stuck_readings_only_when_frozen_for_milliseconds():
+    """An 8 kHz MPU6050 repeats a reading for a sample or three (its accelerometer
+    register changes at 1 kHz): not stuck. A reading re-sent for 20 ms at 1 kHz is, and
+    every one of its 20 repeats counts."""
+    ingest = Ingest(gy86())
+    mav = mavlink.MAVLink(None, 1, 1)
+
+    def raw(t_us, gx):
+        m = mavlink.MAVLink_raw_imu_message(t_us, 0, 0, 4096, gx, 0, 0, 100, 0, 200, 0, 0)
+        return mavlink.MAVLink(None).decode(bytearray(m.pack(mav)))
+
+    t, gx = 1_000_000, 0
+    for i in range(400):  # 8 kHz: each reading held for 1..4 samples (125 µs each)
+        if i % 4 == 0 or i % 7 == 0:
+            gx += 1
+        ingest.handle(raw(t, gx))
+        t += 125
+    counts = next(iter(ingest.sources.values())).counts
+    assert counts["stuck"] == 0
+    for _ in range(21):  # 1 kHz: one reading and 20 copies of it
+        ingest.handle(raw(t, 999))
+        t += 1000
+    ingest.handle(raw(t, 1000))
+    assert counts["stuck"] == 20
+
+
 def test_ingest_highres_nonfinite_is_dropped_or_degraded():
     ingest = Ingest(gy86())
     mav = mavlink.MAVLink(None, 1, 1)

@@ -7,7 +7,16 @@ total low-frequency group delay up to the stated figure (the first-order filter 
 already delays by about 1/(2*pi*bandwidth)); for DLPF_CFG 5 and 6, whose listed delay is
 shorter than that, the delay wins and the filter is made wider (about 12 and 9 Hz
 instead of 10 and 5 Hz). State carries over between calls, so feeding a
-signal in chunks gives exactly the same output as feeding it at once.
+signal in chunks gives exactly the same output as feeding it at once (given a first
+chunk longer than the delay).
+
+The chip's filter has been running since power-up when the firmware reads its first
+sample, so its delay line holds earlier, different readings, never copies of the first
+one (a real MPU6050 does not start with several identical samples, and a listener
+counting identical readings as a stuck sensor must not see one). Those earlier inputs
+are not known; the first inputs mirrored in time stand in for them: the same signal and
+noise statistics, and no extra random draws (every seed's stream stays as it was after
+the first few samples).
 """
 
 from __future__ import annotations
@@ -46,13 +55,23 @@ class LowPass:
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         x = np.ascontiguousarray(x, dtype=float)
-        if not self._started:  # start settled on the first input, as after power-up
-            self._state[:] = x[0]
-            self._tail[:] = x[0]
-            self._started = True
+        if not self._started:
+            self._prime(x)
         y = _first_order(x, self.alpha, self._state)
         if self.delay_samples == 0:
             return y
         joined = np.concatenate([self._tail, y])
         self._tail = joined[len(y):]
         return joined[: len(y)]
+
+    def _prime(self, x: np.ndarray) -> None:
+        """Fill the filter and its delay line with a history: x[d], ..., x[1] (the first
+        inputs mirrored about x[0]), filtered from a state settled on x[d]."""
+        d = self.delay_samples
+        k = min(d, len(x) - 1)
+        self._state[:] = x[k]
+        if d:
+            history = _first_order(np.ascontiguousarray(x[k:0:-1]), self.alpha, self._state)
+            self._tail[: d - k] = x[k]  # a first chunk shorter than the delay
+            self._tail[d - k:] = history
+        self._started = True

@@ -1,8 +1,18 @@
 """``NAME[:key=value,...]``: how the CLI, config files and reports name an estimator
-with parameter overrides (``mahony:kp=0.5,ki=0.01``, ``mahony:mag_mode=full``)."""
+with parameter overrides (``mahony:kp=0.5,ki=0.01``, ``mahony:mag_mode=full``).
+
+Angles at the user surface are in degrees (SPEC, conventions), the library works in
+radians: every parameter documented in ``[rad]`` also answers to ``<name>_deg`` and
+every one in ``[rad/s]`` to ``<name>_dps`` (``eskf:declination_deg=3.5``,
+``mahony:bias_limit_dps=20``); they are converted when parsed, and labels and listings
+show them that way.
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -11,6 +21,46 @@ from .base import Estimator
 from .registry import estimator_class
 
 ParamValue = float | bool | str
+
+#: Suffix of the degree-valued alias -> the unit (first bracket of the doc) it replaces.
+DEGREE_SUFFIXES = {"_deg": "rad", "_dps": "rad/s"}
+_UNIT = re.compile(r"\[([^\]]*)\]")
+
+
+def angle_params(est_cls: type[Estimator]) -> dict[str, str]:
+    """Parameter name -> its degree alias (``declination`` -> ``declination_deg``) for
+    every parameter whose documented unit is ``[rad]`` or ``[rad/s]``."""
+    out = {}
+    for f in dataclasses.fields(est_cls.Params):
+        unit = _UNIT.search(f.metadata.get("doc", ""))
+        for suffix, rad_unit in DEGREE_SUFFIXES.items():
+            if unit is not None and unit.group(1).strip() == rad_unit:
+                out[f.name] = f.name + suffix
+    return out
+
+
+def user_param(est_cls: type[Estimator], name: str, value: ParamValue
+               ) -> tuple[str, ParamValue]:
+    """(name, value) as the user surface shows it: angles in degrees under their alias."""
+    alias = angle_params(est_cls).get(name)
+    if alias is None or isinstance(value, bool) or not isinstance(value, int | float):
+        return name, value
+    return alias, math.degrees(float(value))
+
+
+def user_param_docs(est_cls: type[Estimator]) -> dict[str, str]:
+    """Like ``param_docs`` with angles in degrees: ``declination_deg`` -> '0.0; ...[deg]'."""
+    aliases = angle_params(est_cls)
+    out = {}
+    for f in dataclasses.fields(est_cls.Params):
+        doc = f.metadata.get("doc", "")
+        if f.name in aliases:
+            unit = "deg" if aliases[f.name].endswith("_deg") else "deg/s"
+            doc = _UNIT.sub(f"[{unit}]", doc, count=1)
+            out[aliases[f.name]] = f"{math.degrees(f.default):.6g}; {doc}"
+        else:
+            out[f.name] = f"{f.default!r}; {doc}"
+    return out
 
 
 def _parse_value(text: str) -> ParamValue:
@@ -44,20 +94,29 @@ class EstimatorSpec:
             key, sep, value = item.partition("=")
             if not sep or not key.strip():
                 raise ValueError(f"bad estimator parameter {item!r} in {text!r}; use k=v "
-                                 f"(valid keys for {name}: {est_cls.param_names()})")
-            params[key.strip()] = _parse_value(value)
+                                 f"(valid keys for {name}: {user_param_names(est_cls)})")
+            key, parsed = _internal(est_cls, key.strip(), _parse_value(value))
+            if key in params:
+                raise ValueError(f"estimator parameter {key!r} given twice in {text!r}")
+            params[key] = parsed
         spec = cls(name, params)
         spec.validate()
         return spec
 
     @property
     def label(self) -> str:
-        """Unique display/topic name: the name, plus the overrides if any."""
+        """Unique display name: the name, plus the overrides if any (angles in degrees,
+        ``eskf:declination_deg=3.5``)."""
         if not self.params:
             return self.name
         return self.name + ":" + ",".join(
             f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
-            for k, v in self.params.items())
+            for k, v in self.user_params().items())
+
+    def user_params(self) -> dict[str, ParamValue]:
+        """The overrides as the user surface shows them (angles in degrees)."""
+        est_cls = estimator_class(self.name)
+        return dict(user_param(est_cls, k, v) for k, v in self.params.items())
 
     def validate(self) -> None:
         """ValueError for an unknown name or a bad parameter, before any work is done."""
@@ -69,3 +128,25 @@ class EstimatorSpec:
         spec's own overrides."""
         return estimator_class(self.name)(rate_hz=rate_hz, world=world, q0=q0,
                                           **{**defaults, **self.params})
+
+
+def user_param_names(est_cls: type[Estimator]) -> list[str]:
+    """Every name a parameter answers to at the user surface (degree aliases included)."""
+    aliases = angle_params(est_cls)
+    return [n for name in est_cls.param_names()
+            for n in ((name, aliases[name]) if name in aliases else (name,))]
+
+
+def _internal(est_cls: type[Estimator], key: str, value: ParamValue
+              ) -> tuple[str, ParamValue]:
+    """A user-surface parameter -> (library name, value in radians)."""
+    for name, alias in angle_params(est_cls).items():
+        if key == alias:
+            if isinstance(value, bool) or not isinstance(value, float):
+                raise ValueError(f"parameter {key!r} must be a number of degrees, "
+                                 f"got {value!r}")
+            return name, math.radians(value)
+    if key not in est_cls.param_names():
+        raise ValueError(f"unknown parameter {key!r} for estimator {est_cls.name!r}; "
+                         f"valid: {user_param_names(est_cls)}")
+    return key, value

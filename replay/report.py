@@ -21,6 +21,7 @@ import numpy as np
 
 import estimators
 from estimators import _core, metrics
+from estimators.spec import user_param
 
 from .evaluate import Evaluation, vehicle_note
 from .plotdata import decimation, plot_angles
@@ -106,14 +107,15 @@ def _params_html(ev: Evaluation) -> str:
         given = {"declination": ev.prepared.declination.rad, **run.spec.params}
         params = dataclasses.asdict(
             estimators.estimator_class(run.spec.name).make_params(**given))
-        text = ", ".join(_param_text(k, v) for k, v in params.items())
+        cls = estimators.estimator_class(run.spec.name)
+        text = ", ".join(_param_text(*user_param(cls, k, v)) for k, v in params.items())
         rows.append(f"<tr><th>{html.escape(label)}</th><td>{html.escape(text)}</td></tr>")
     return f"<h3>Estimator parameters</h3><table class='info'>{''.join(rows)}</table>"
 
 
 def _param_text(name: str, value: object) -> str:
-    if name == "declination":
-        return f"declination_deg={math.degrees(float(value)):.3f}"
+    if name.endswith(("_deg", "_dps")) and isinstance(value, float):
+        return f"{name}={value:.3f}"
     if isinstance(value, int | float):
         return f"{name}={value:.6g}"
     return f"{name}={value}"

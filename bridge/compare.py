@@ -10,7 +10,11 @@ References, per vehicle:
 
 Errors are the BROAD total / heading / inclination RMS (``estimators.metrics``) over a
 rolling window. The "lag" of a series against the reference is the shift ``τ`` that
-best explains ``estimate(t) ≈ reference(t - τ)``, from a grid search.
+best explains ``estimate(t) ≈ reference(t - τ)``, from a grid search. It is not always
+measurable, and then it is reported as unknown with the reason (``lag_s`` None,
+``lag_note``), never as a number: when the best shift is at an open end of the grid
+(the lag is beyond it, or the series do not look alike at all) and when the reference
+hardly moves in the window (on the ground every shift fits as well as any other).
 """
 
 from __future__ import annotations
@@ -36,13 +40,20 @@ class Comparison:
     inclination_deg: float
     # Best shift τ in estimate(t + τ) ≈ reference(t). Truth: τ > 0 is the estimator's
     # lag. Vehicle: the offset used for scoring; τ < 0 means its stamps are late by -τ.
-    lag_s: float
+    # None when not measurable; lag_note then says why ("> 200 ms", "static").
+    lag_s: float | None
     samples: int
+    lag_note: str = ""
 
-    def to_dict(self) -> dict[str, float]:
-        return {"total_deg": round(self.total_deg, 3), "heading_deg": round(self.heading_deg, 3),
-                "inclination_deg": round(self.inclination_deg, 3),
-                "lag_s": round(self.lag_s, 4), "samples": self.samples}
+    def to_dict(self) -> dict[str, float | str | None]:
+        out: dict[str, float | str | None] = {
+            "total_deg": round(self.total_deg, 3), "heading_deg": round(self.heading_deg, 3),
+            "inclination_deg": round(self.inclination_deg, 3),
+            "lag_s": None if self.lag_s is None else round(self.lag_s, 4),
+            "samples": self.samples}
+        if self.lag_s is None:
+            out["lag_note"] = self.lag_note
+        return out
 
 
 def _nearest(t_src: np.ndarray, t_query: np.ndarray) -> np.ndarray:
@@ -61,10 +72,20 @@ def _error_at_shift(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
     return q_est[idx[ok]], q_ref[ok]
 
 
+#: A reference turning less than this over the window shows no lag (on the ground).
+MIN_MOTION_DEG = 1.0
+
+
 def compare_series(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
                    q_ref: np.ndarray, shifts: np.ndarray, score_at_best: bool,
-                   max_points: int = 400) -> Comparison | None:
-    """Score an estimate series against a reference series (both sorted by time)."""
+                   max_points: int = 400, open_ends: tuple[bool, bool] = (True, True)
+                   ) -> Comparison | None:
+    """Score an estimate series against a reference series (both sorted by time).
+
+    ``open_ends``: whether a best shift at the low / high end of ``shifts`` means the
+    lag lies beyond the search (unknown). The truth grid starts at 0 and a causal
+    estimator cannot lead the truth, so its low end is closed: 0 is a lag there.
+    """
     if len(t_est) < 2 or len(t_ref) < 2:
         return None
     order = np.argsort(t_est, kind="stable")
@@ -72,23 +93,31 @@ def compare_series(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
     step = max(1, len(t_ref) // max_points)
     t_r, q_r = t_ref[::step], q_ref[::step]
     max_gap = 2.0 * float(np.median(np.diff(t_est))) + 1e-4
-    best_shift, best_rms = 0.0, np.inf
-    for shift in shifts:
+    best, best_rms = -1, np.inf
+    for i, shift in enumerate(shifts):
         e, r = _error_at_shift(t_est, q_est, t_r, q_r, float(shift), max_gap)
         if len(e) < max(3, len(t_r) // 4):
             continue
         rms = float(np.sqrt(np.mean(Q.angle_between(e, r) ** 2)))
         if rms < best_rms:
-            best_shift, best_rms = float(shift), rms
+            best, best_rms = i, rms
     if not np.isfinite(best_rms):
         return None
-    e, r = _error_at_shift(t_est, q_est, t_ref, q_ref, best_shift if score_at_best else 0.0,
-                           max_gap)
+    lag: float | None = float(shifts[best])
+    note = ""
+    if np.degrees(np.max(Q.angle_between(q_r, q_r[:1]))) < MIN_MOTION_DEG:
+        lag, note = None, "not measurable: the reference does not move"
+    elif best == 0 and open_ends[0]:
+        lag, note = None, f"< {shifts[0] * 1e3:.0f} ms (end of the search)"
+    elif best == len(shifts) - 1 and open_ends[1]:
+        lag, note = None, f"> {shifts[-1] * 1e3:.0f} ms (end of the search)"
+    at = lag if (score_at_best and lag is not None) else 0.0
+    e, r = _error_at_shift(t_est, q_est, t_ref, q_ref, at, max_gap)
     if len(e) == 0:
         return None
     err = metrics.rms_errors(e, r)
-    return Comparison(err.total_deg, err.heading_deg, err.inclination_deg, best_shift,
-                      err.samples)
+    return Comparison(err.total_deg, err.heading_deg, err.inclination_deg, lag,
+                      err.samples, note)
 
 
 class References:
@@ -129,7 +158,7 @@ def vehicle_against_truth(refs: References, window_s: float = 10.0) -> Compariso
     t_own, q_own = own.snapshot(truth.last_t - window_s - 1.0)
     valid = np.all(np.isfinite(q_own), axis=1)
     return compare_series(t_own[valid], q_own[valid], t_ref, q_ref, VEHICLE_SHIFTS,
-                          score_at_best=False)
+                          score_at_best=False)  # both ends open
 
 
 def compare_all(history: dict[str, TimeRing], refs: References,
@@ -146,7 +175,8 @@ def compare_all(history: dict[str, TimeRing], refs: References,
             t_est, q_est = est_ring.snapshot(ring.last_t - window_s - 1.0)
             valid = np.all(np.isfinite(q_est), axis=1)
             c = compare_series(t_est[valid], q_est[valid], t_ref, q_ref, shifts,
-                               score_at_best=(ref_name == VEHICLE))
+                               score_at_best=(ref_name == VEHICLE),
+                               open_ends=(ref_name == VEHICLE, True))
             if c is not None:
                 results[label] = c
         if results:

@@ -100,7 +100,8 @@ async def test_declination_from_the_px4_parameter_reaches_the_estimate():
     # against it (the VEHICLE columns).
     own = status["vehicle_vs_truth"]
     assert own is not None and own["samples"] > 100 and 0.0 < own["total_deg"] < 20.0
-    assert math.isfinite(own["lag_s"])
+    # Its lag: a number, or why there is none (beyond the search, reference static).
+    assert (own["lag_s"] is not None and math.isfinite(own["lag_s"])) or own["lag_note"]
     vs_vehicle = status["compare"]["vehicle"]["eskf"]
     assert vs_vehicle["samples"] > 100 and np.isfinite(vs_vehicle["total_deg"])
     assert "(vehicle own)" in table and "PX4 quadrotor" in table

@@ -399,6 +399,25 @@ def test_compare_finds_lag_and_scores():
     assert c2.total_deg < 0.2 and c2.heading_deg == pytest.approx(c2.total_deg, rel=1e-3)
 
 
+def test_compare_reports_an_unmeasurable_lag_as_unknown_never_the_grid_end():
+    t = np.arange(0.0, 5.0, 0.002)
+    yaw = np.radians(30.0) * np.sin(2 * np.pi * 0.5 * t)
+    ref = Q.from_euler(0 * t, 0 * t, yaw)
+    late = Q.from_euler(0 * t, 0 * t, np.radians(30.0) * np.sin(2 * np.pi * 0.5 * (t - 0.3)))
+    grid = np.arange(0.0, 0.2001, 0.002)
+    beyond = compare_series(t, late, t, ref, grid, score_at_best=False, open_ends=(False, True))
+    assert beyond.lag_s is None and beyond.lag_note.startswith("> 200 ms")
+    assert beyond.to_dict()["lag_s"] is None and "lag_note" in beyond.to_dict()
+    # On the ground every shift fits alike: no lag, whatever the grid search picks.
+    still = Q.from_euler(0 * t, 0 * t, 0 * t + 0.3)
+    static = compare_series(t, still, t, still, grid, score_at_best=False)
+    assert static.lag_s is None and "does not move" in static.lag_note
+    assert static.total_deg < 1e-6  # the errors are still scored
+    # A causal estimator on the truth's clock: 0 is a lag (the grid's closed end).
+    same = compare_series(t, ref, t, ref, grid, score_at_best=False, open_ends=(False, True))
+    assert same.lag_s == 0.0
+
+
 def test_kernel_filter_keeps_vehicles_and_heartbeats_and_samples_the_rest():
     """The socket filter on a real UDP socket: the admitted vehicle's frames and anyone's
     HEARTBEAT pass whole; other frames are dropped but for a 1/64 sample cut to 3 bytes."""

@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Installs attitude-bridge with its test tools and the report extra (bokeh, matplotlib)
-# into the current Python environment, plus mosquitto (the MQTT broker the integration
-# tests start) from Debian when root.
+# into the current Python environment (editable), plus mosquitto (the MQTT broker the
+# integration tests start) from Debian when root; then compiles the estimators ahead
+# (`attitude-bridge warmup`) and smoke-tests the install. The Python part is
+# docker/setup.sh, the same script the Docker image is built with.
 set -euo pipefail
 cd "$(dirname "$0")"
 if ! command -v mosquitto >/dev/null 2>&1 && [ ! -x /usr/sbin/mosquitto ]; then
@@ -15,4 +17,4 @@ if ! command -v mosquitto >/dev/null 2>&1 && [ ! -x /usr/sbin/mosquitto ]; then
     fi
 fi
 python -m pip install -q --upgrade pip
-python -m pip install -q -e ".[test,report]"
+bash docker/setup.sh -e . "test,report"

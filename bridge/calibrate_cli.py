@@ -88,7 +88,10 @@ def log_samples(paths: list[Path], board: str, imu: str | None
 def main(args: argparse.Namespace) -> int:
     from imu.rotations import rotation_matrix
 
+    from .config import check_rotation
+
     try:
+        check_rotation(args.rotation)
         rot = rotation_matrix(args.rotation)
         if args.emulator:
             if args.logs:
@@ -107,7 +110,7 @@ def main(args: argparse.Namespace) -> int:
                                       magnetometer=not args.no_mag,
                                       gyro_matrix=not args.no_gyro_matrix)
     except ValueError as exc:  # includes unreadable logs (ReplayInputError)
-        print(f"attitude-bridge calibrate: {exc}", file=sys.stderr)
+        print(f"attitude-bridge calibrate: error: {exc}", file=sys.stderr)
         return 2
     lines = report.lines()
     for line in lines:
@@ -116,7 +119,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         cal.save(args.output, comment)
     except OSError as exc:
-        print(f"attitude-bridge calibrate: cannot write {args.output}: {exc}", file=sys.stderr)
+        print(f"attitude-bridge calibrate: error: cannot write {args.output}: {exc}",
+              file=sys.stderr)
         return 2
     print(f"wrote {args.output}")
     return 0

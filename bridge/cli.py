@@ -1,14 +1,22 @@
-"""The ``attitude-bridge`` command: one sub-command per job.
+"""The ``attitude-bridge`` command: one sub-command per job, one error boundary for all.
 
 Each sub-command lives with the code it drives and exposes
 ``register(subparsers) -> None``, which adds its parser and sets ``func`` (called
 with the parsed arguments, returns the exit code).
+
+Whatever a user can get wrong — a file that is not there, a port in use, a host that
+does not resolve, a bad value in a settings file — raises ``ValueError`` or ``OSError``
+with a message that names the culprit. :func:`main` turns those into one line on
+stderr and exit code 2, whichever sub-command raised them, so no expected failure ever
+ends in a traceback. Anything else is a bug: one line saying so (exit code 1), and the
+traceback with ``ATTITUDE_BRIDGE_DEBUG=1``.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Sequence
 
@@ -19,17 +27,61 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "bridge.run_cli",
     "bridge.calibrate_cli",
     "replay.cli",
+    "bridge.warmup",
+    "bridge.health",
 )
+
+EXIT_USAGE = 2  # bad input: the user can fix it (argparse uses 2 too)
+EXIT_BUG = 1
+EXIT_INTERRUPTED = 130  # as a shell reports SIGINT
+DEBUG_ENV = "ATTITUDE_BRIDGE_DEBUG"
+
+
+def version_text() -> str:
+    """The installed version, with the versions that matter for a bug report."""
+    from importlib import metadata
+
+    def v(dist: str) -> str:
+        try:
+            return metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            return "not installed"
+
+    return (f"attitude-bridge {v('attitude-bridge')} (python {sys.version.split()[0]}, "
+            f"numpy {v('numpy')}, numba {v('numba')}, pymavlink {v('pymavlink')})")
+
+
+class _Version(argparse.Action):
+    """``--version``: print on one line (argparse's own action wraps it) and exit."""
+
+    def __init__(self, option_strings: list[str], dest: str = argparse.SUPPRESS,
+                 **kwargs: object) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS,
+                         help="print the version (and those of its main libraries) and exit")
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
+        print(version_text())
+        parser.exit()
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="attitude-bridge",
         description="MAVLink companion and HIL bridge for quadrotor attitude estimation.")
+    parser.add_argument("--version", action=_Version)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for module in SUBCOMMAND_MODULES:
         importlib.import_module(module).register(sub)
     return parser
+
+
+def describe_error(exc: BaseException) -> str:
+    """One line for an expected failure: what, and which file or address."""
+    if isinstance(exc, OSError) and exc.strerror:
+        name = exc.filename if exc.filename is not None else ""
+        return f"{name}: {exc.strerror}" if name else exc.strerror
+    text = str(exc).strip() or type(exc).__name__
+    return " ".join(text.split())  # never more than one line
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -37,8 +89,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
-        return 2
-    return int(args.func(args) or 0)
+        return EXIT_USAGE
+    prog = f"attitude-bridge {args.command}"
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (ValueError, OSError) as exc:
+        if os.environ.get(DEBUG_ENV):
+            raise
+        print(f"{prog}: error: {describe_error(exc)}", file=sys.stderr)
+        return EXIT_USAGE
+    except Exception as exc:
+        if os.environ.get(DEBUG_ENV):
+            raise
+        print(f"{prog}: internal error ({type(exc).__name__}: {describe_error(exc)}); "
+              f"this is a bug: {DEBUG_ENV}=1 shows the traceback", file=sys.stderr)
+        return EXIT_BUG
 
 
 if __name__ == "__main__":

@@ -1,14 +1,22 @@
-"""Bridge settings: one dataclass, filled from the command line or a TOML file.
+"""Bridge settings: one dataclass, filled from a TOML file, the environment and the
+command line (each overriding the one before).
 
-TOML keys are the field names below (``estimators`` is a list of ``"name:k=v,..."``
-strings, ``outs`` a list of URLs); command-line options override the file.
+A setting has one name everywhere: its command-line option. In a TOML file the key is
+the option name, with dashes or underscores (``peer-timeout = 10``, ``estimator =
+["eskf", "mahony:kp=0.5"]``, ``no-aiding = true``); in the environment it is
+``ATTITUDE_BRIDGE_`` + the name in capitals (``ATTITUDE_BRIDGE_MQTT_PASSWORD``; lists
+separated by spaces). The field names below are accepted too (files written before the
+option names were). Unknown keys are refused with the list of valid ones: a typo must
+not silently fall back to a default.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,7 +27,7 @@ from imu.boards import PROFILES
 from imu.calibration import SensorCalibration
 from imu.rotations import rotation_matrix
 
-from .mav import BRIDGE_COMPONENT_ID
+from .mav import BRIDGE_COMPONENT_ID, mavlink
 from .negotiate import parse_forced
 
 #: Personalities of the built-in emulator (hil.personality.AUTOPILOTS; not imported
@@ -28,6 +36,51 @@ EMULATOR_AUTOPILOTS = ("stm32", "px4", "ardupilot")
 
 #: Preferred default primary estimator, first one available wins.
 DEFAULT_ESTIMATORS = ("eskf", "mahony", "madgwick", "quaternion")
+
+
+#: Command-line option (underscored) -> the field it sets, where the names differ.
+OPTION_FIELDS = {
+    "estimator": "estimators", "out": "outs", "vehicle": "vehicles",
+    "declination": "declination_deg", "profile": "emulator_profile",
+    "seed": "emulator_seed", "fast": "emulator_fast", "peer_timeout": "peer_timeout_s",
+    "source_timeout": "source_timeout_s", "evict_after": "evict_after_s",
+    "clock_resync": "clock_resync_s", "reinit_gap": "reinit_gap_s",
+    "reinit_settle": "reinit_settle_s", "idle_timeout": "idle_timeout_s",
+    "gyro_range": "gyro_range_dps", "accel_range": "accel_range_g",
+    "mag_range": "mag_range_gauss", "aid_max_age": "aid_max_age_s",
+}
+#: Options that switch a setting off (``no-aiding = true`` is ``aiding = false``).
+NEGATED_OPTIONS = {"no_aiding": "aiding"}
+#: Settings without a command-line option (file and environment only).
+FILE_ONLY = ("mqtt_prefix", "system_id", "jump_s", "reorder_s", "window_s",
+             "status_period_s")
+ENV_PREFIX = "ATTITUDE_BRIDGE_"
+#: ATTITUDE_BRIDGE_* variables that are not settings.
+ENV_NOT_SETTINGS = frozenset({"DATA", "DEBUG", "CONFIG"})
+
+#: Mounting rotations by name: MAVLink's MAV_SENSOR_ORIENTATION (PX4's and ArduPilot's
+#: tables, which agree) plus ArduPilot's later PITCH_7, ROLL_45 and ROLL_315.
+STANDARD_ROTATIONS = tuple(
+    [e.name.removeprefix("MAV_SENSOR_ROTATION_") for _, e in
+     sorted(mavlink.enums["MAV_SENSOR_ORIENTATION"].items())
+     if e.name.startswith("MAV_SENSOR_ROTATION_") and e.name != "MAV_SENSOR_ROTATION_CUSTOM"]
+    + ["PITCH_7", "ROLL_45", "ROLL_315"])
+
+
+def check_rotation(name: str) -> None:
+    """ValueError unless ``name`` is a standard mounting rotation (``YAW_90``,
+    ``ROTATION_YAW_90``): ``YAW_91`` is a typo, not a mounting an autopilot knows."""
+    text = str(name).strip().upper().removeprefix("MAV_SENSOR_").removeprefix("ROTATION_")
+    if text not in STANDARD_ROTATIONS:
+        raise ValueError(
+            f"unknown rotation {name!r}; use a PX4/ArduPilot name: "
+            f"{', '.join(STANDARD_ROTATIONS)} (a board mounted at another angle: "
+            f"`attitude-bridge calibrate` measures it)")
+
+
+def normalise_key(key: str) -> str:
+    """``--peer-timeout`` / ``peer-timeout`` / ``PEER_TIMEOUT`` -> ``peer_timeout``."""
+    return str(key).strip().lstrip("-").lower().replace("-", "_")
 
 
 def default_estimator() -> str:
@@ -100,6 +153,8 @@ class BridgeConfig:
     status_period_s: float = 1.0
     duration: float | None = None  # stop after this many seconds
     table: bool = False  # live table on stdout
+    record: str | None = None  # .tlog of the connection's traffic, in and out
+    status_file: str | None = None  # status JSON rewritten every status period (health)
     # Built-in emulator (no --connect): profile, seed, IMU message, faster than real time.
     emulator_profile: str = "flight"
     emulator_seed: int = 1
@@ -117,10 +172,16 @@ class BridgeConfig:
 
     def validate(self) -> None:
         """Raise ValueError naming the bad setting, before anything is started."""
+        from .codec import load_signing_key
         from .links import parse_url
 
         self._check_types()
         self._check_ranges()
+        if self.signing_key:
+            try:
+                load_signing_key(self.signing_key)
+            except ValueError as exc:
+                raise ValueError(f"--signing-key {self.signing_key}: {exc}") from None
         if self.connect:
             parse_url(self.connect)
         for url in self.outs:
@@ -129,18 +190,26 @@ class BridgeConfig:
             spec.validate()
         if self.board is not None and self.board not in PROFILES:
             raise ValueError(f"unknown board {self.board!r}; valid: {sorted(PROFILES)}")
+        check_rotation(self.rotation)
         rotation_matrix(self.rotation)
         self.sensor_calibration()
         parse_forced(self.imu_message)
         if self.emulator_autopilot not in EMULATOR_AUTOPILOTS:
             raise ValueError(f"unknown emulator autopilot {self.emulator_autopilot!r}; "
                              f"valid: {', '.join(EMULATOR_AUTOPILOTS)}")
+        if not self.connect:  # the built-in emulator is the source
+            from .emulator import check_emulator
+
+            check_emulator(self)
         if not 1 <= self.component_id <= 255 or not 1 <= self.system_id <= 255:
             raise ValueError("component_id and system_id must be in 1..255")
         if self.mqtt:
             from .mqtt import MqttSettings
 
             MqttSettings.from_url(self.mqtt)
+        for option, path in (("--record", self.record), ("--status-file", self.status_file)):
+            if path is not None:
+                check_output_file(path, option)
 
     def _check_types(self) -> None:
         """Every setting of the type it is declared with (a TOML file can say anything)."""
@@ -206,26 +275,145 @@ class BridgeConfig:
 
     @classmethod
     def from_toml(cls, path: str | Path) -> BridgeConfig:
-        """Settings from a TOML file; a relative ``calibration`` path is taken relative
-        to the settings file (they usually live side by side)."""
-        data = tomllib.loads(Path(path).read_text())
-        cal = data.get("calibration")
-        if isinstance(cal, str) and not Path(cal).is_absolute():
-            data["calibration"] = str(Path(path).parent / cal)
-        return cls.from_dict(data)
+        """Settings from a TOML file (keys: option names)."""
+        return cls(**cls.fields_from_toml(path))
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> BridgeConfig:
+    def fields_from_toml(cls, path: str | Path) -> dict[str, Any]:
+        """{field: value} of a TOML settings file; a relative ``calibration`` path is
+        taken relative to the settings file (they usually live side by side). Every
+        error names the file."""
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise ValueError(f"settings file {path} does not exist") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ValueError(f"cannot read settings file {path}: "
+                             f"{getattr(exc, 'strerror', None) or exc}") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"settings file {path} is not valid TOML: {exc}") from None
+        try:
+            fields = cls.fields_from(data)
+        except ValueError as exc:
+            raise ValueError(f"settings file {path}: {exc}") from None
+        cal = fields.get("calibration")
+        if isinstance(cal, str) and not Path(cal).is_absolute():
+            fields["calibration"] = str(path.parent / cal)
+        return fields
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> BridgeConfig:
+        return cls(**cls.fields_from(data))
+
+    @classmethod
+    def fields_from(cls, data: Mapping[str, Any]) -> dict[str, Any]:
+        """Settings by option name (or field name) -> {field: value}; ValueError for an
+        unknown name, listing the valid ones. A list setting takes one value too."""
+        out: dict[str, Any] = {}
+        for key, value in data.items():
+            name, negated = cls.field_of(key)
+            if negated:
+                if not isinstance(value, bool):
+                    raise ValueError(f"setting {key!r} must be true or false, got {value!r}")
+                value = not value
+            if isinstance(value, str | int) and cls._is_list(name):
+                value = [value]
+            if name in out:
+                raise ValueError(f"setting {key!r} given twice (as {name!r})")
+            out[name] = value
+        return out
+
+    @classmethod
+    def field_of(cls, key: str) -> tuple[str, bool]:
+        """(field name, negated) for an option or field name; ValueError otherwise."""
+        k = normalise_key(key)
         names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - names)
-        if unknown:
-            raise ValueError(f"unknown setting(s) {unknown}; valid: {sorted(names)}")
-        return cls(**data)
+        if k in NEGATED_OPTIONS:
+            return NEGATED_OPTIONS[k], True
+        name = OPTION_FIELDS.get(k, k)
+        if name not in names:
+            raise ValueError(f"unknown setting {key!r}; valid: {', '.join(cls.user_names())}")
+        return name, False
+
+    @classmethod
+    def user_names(cls) -> list[str]:
+        """Every setting's name at the user surface (its option name, dashed)."""
+        by_field = {f: o for o, f in OPTION_FIELDS.items() if not o.endswith("declination")}
+        by_field.update({f: o for o, f in NEGATED_OPTIONS.items()})
+        return sorted(by_field.get(f.name, f.name).replace("_", "-")
+                      for f in dataclasses.fields(cls))
+
+    @classmethod
+    def _is_list(cls, name: str) -> bool:
+        kind = {f.name: str(f.type) for f in dataclasses.fields(cls)}[name]
+        return kind.startswith("list")
+
+    @classmethod
+    def fields_from_env(cls, environ: Mapping[str, str] | None = None) -> dict[str, Any]:
+        """Settings from ``ATTITUDE_BRIDGE_<OPTION>`` variables (strings, converted by
+        the setting's type; lists separated by white space). Keeps secrets such as
+        ``ATTITUDE_BRIDGE_MQTT_PASSWORD`` off the command line."""
+        environ = os.environ if environ is None else environ
+        out: dict[str, Any] = {}
+        kinds = {f.name: str(f.type) for f in dataclasses.fields(cls)}
+        for var, text in environ.items():
+            if not var.startswith(ENV_PREFIX) or var[len(ENV_PREFIX):] in ENV_NOT_SETTINGS:
+                continue
+            try:
+                name, negated = cls.field_of(var[len(ENV_PREFIX):])
+                value = _from_text(kinds[name], text)
+            except ValueError as exc:
+                raise ValueError(f"environment variable {var}: {exc}") from None
+            out[name] = (not value) if negated else value
+        return out
 
     def merged(self, **overrides: Any) -> BridgeConfig:
         """A copy with every override that is not None (or an empty list) applied."""
         changes = {k: v for k, v in overrides.items() if v is not None and v != []}
         return dataclasses.replace(self, **changes)
+
+
+def check_output_file(path: str | Path, option: str) -> None:
+    """ValueError unless ``path`` can be written: a file name in an existing, writable
+    folder (checked before the service starts, not when the first sample comes)."""
+    p = Path(path)
+    folder = p.parent
+    if p.is_dir():
+        raise ValueError(f"{option} {p}: is a folder, expected a file name")
+    if not folder.is_dir():
+        raise ValueError(f"{option} {p}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise ValueError(f"{option} {p}: folder {folder} is not writable")
+
+
+_TRUE = ("1", "true", "yes", "on")
+_FALSE = ("0", "false", "no", "off", "")
+
+
+def _from_text(kind: str, text: str) -> Any:
+    """An environment variable's text as a setting of the declared type."""
+    base = kind.replace(" | None", "").strip()
+    value = text.strip()
+    if base == "bool":
+        if value.lower() in _TRUE:
+            return True
+        if value.lower() in _FALSE:
+            return False
+        raise ValueError(f"expected true or false, got {text!r}")
+    if base.startswith("list"):
+        items = value.split()
+        return [_from_text(base[5:-1], v) for v in items]
+    if "None" in kind and value == "":
+        return None
+    try:
+        if base == "float":
+            return float(value)
+        if base == "int":
+            return int(value)
+    except ValueError:
+        raise ValueError(f"expected a number, got {text!r}") from None
+    return value
 
 
 def parse_source(text: str) -> tuple[int, int]:

@@ -31,6 +31,15 @@ def emulator_config(cfg: BridgeConfig, duration_s: float | None) -> Any:
                           autopilot=who.name, imu_message=imu_message, gps=gps)
 
 
+def check_emulator(cfg: BridgeConfig) -> None:
+    """ValueError for emulator settings it cannot run (an unknown profile, a missing
+    profile file), before the service starts rather than in its background task."""
+    from hil.motion import make_profile
+
+    ecfg = emulator_config(cfg, cfg.duration)
+    make_profile(ecfg.profile, ecfg.duration_s or 60.0, ecfg.rotor_drag_per_s)
+
+
 def emulator_declination_deg() -> float:
     """Magnetic declination at the emulator's home position (World Magnetic Model):
     its truth is referenced to true north, its magnetometer to magnetic north."""

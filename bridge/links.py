@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import logging
 import os
 import socket
@@ -52,8 +53,25 @@ MAX_DATAGRAMS_PER_WAKEUP = 512  # then let other callbacks run
 BACKOFF_MAX_S = 5.0
 
 MessageHandler = Callable[[MAVLinkMessage, "Link"], None]
+#: Sees every frame read (True) or written (False), e.g. to record the session.
+Tap = Callable[[bytes, bool], None]
 #: Sees each UDP datagram before parsing; False refuses it (the gate counts why).
 Gate = Callable[[bytes], bool]
+
+
+class LinkError(OSError):
+    """A link that cannot be opened at all (a host that does not resolve, a port in use,
+    an address not on this machine): a setting to fix, reported as one line."""
+
+
+#: What a failed bind means, in words a user can act on.
+_BIND_REASONS = {
+    errno.EADDRINUSE: "address already in use (another program, or another bridge, is "
+                      "listening on that port)",
+    errno.EADDRNOTAVAIL: "that address is not on this machine (use 0.0.0.0 to listen on "
+                         "all of its addresses)",
+    errno.EACCES: "permission denied (ports below 1024 need privileges)",
+}
 
 
 @dataclass(frozen=True)
@@ -135,6 +153,7 @@ class Link:
         self.last_receive = 0.0  # time.monotonic() of the last valid message
         self.last_addr: tuple | None = None  # sender of the message being handled
         self.gate: Gate | None = None
+        self.tap: Tap | None = None
 
     @property
     def name(self) -> str:
@@ -155,14 +174,21 @@ class Link:
         if not self.connected:
             self.stats.send_dropped += 1
             return
-        self._write(self.codec.pack(msg, sysid, compid))
+        data = self.codec.pack(msg, sysid, compid)
+        if self.tap is not None:
+            self.tap(data, False)
+        self._write(data)
 
     def send_many(self, msgs: tuple[MAVLinkMessage, ...], sysid: int, compid: int) -> None:
         """Several messages in one write (one UDP datagram: fewer system calls)."""
         if not self.connected:
             self.stats.send_dropped += len(msgs)
             return
-        self._write(b"".join(self.codec.pack(m, sysid, compid) for m in msgs))
+        frames = [self.codec.pack(m, sysid, compid) for m in msgs]
+        if self.tap is not None:
+            for frame in frames:
+                self.tap(frame, False)
+        self._write(b"".join(frames))
 
     def _write(self, data: bytes) -> None:
         raise NotImplementedError
@@ -182,6 +208,9 @@ class Link:
         self.last_receive = time.monotonic()
         if addr is not None:
             self._heard(addr)
+        if self.tap is not None:
+            for msg in msgs:
+                self.tap(msg.get_msgbuf(), True)
         if self.on_message is None:
             return
         for msg in msgs:
@@ -255,19 +284,30 @@ class UdpLink(Link):
         return self._peer_list
 
     async def start(self) -> None:
+        """Resolve and bind; LinkError saying why when that is impossible."""
         loop = asyncio.get_running_loop()
-        infos = await loop.getaddrinfo(self.url.host, self.url.port, family=socket.AF_INET,
-                                       type=socket.SOCK_DGRAM)
+        try:
+            infos = await loop.getaddrinfo(self.url.host, self.url.port,
+                                           family=socket.AF_INET, type=socket.SOCK_DGRAM)
+        except OSError as exc:  # socket.gaierror
+            raise LinkError(f"{self.name}: cannot resolve host {self.url.host!r} "
+                            f"({exc.strerror or exc})") from None
         address = infos[0][4][:2]
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.setblocking(False)
         with contextlib.suppress(OSError):  # absorb bursts (e.g. a GC pause at 8 kHz)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER)
-        if self.url.kind == "udpin":
-            sock.bind(address)
-        else:
-            sock.bind(("0.0.0.0", 0))
-            self._target = address
+        try:
+            if self.url.kind == "udpin":
+                sock.bind(address)
+            else:
+                sock.bind(("0.0.0.0", 0))
+                self._target = address
+        except OSError as exc:
+            sock.close()
+            reason = _BIND_REASONS.get(exc.errno, exc.strerror or str(exc))
+            raise LinkError(f"{self.name}: cannot open {address[0]}:{address[1]}: "
+                            f"{reason}") from None
         self._sock = sock
         loop.add_reader(sock.fileno(), self._readable)
 
@@ -325,7 +365,10 @@ class UdpLink(Link):
         if self._sock is None or target is None:
             self.stats.send_dropped += 1
             return
-        self._sendto(self.codec.pack(msg, sysid, compid), target)
+        data = self.codec.pack(msg, sysid, compid)
+        if self.tap is not None:
+            self.tap(data, False)
+        self._sendto(data, target)
 
     def _sendto(self, data: bytes, addr: tuple) -> None:
         sock = self._sock

@@ -36,14 +36,6 @@ from .model import UNKNOWN, model_defaults
 from .ring import TimeRing
 
 
-def warm_up(spec: EstimatorSpec) -> None:
-    """Compile the estimator's kernels now (they are cached on disk), so that the first
-    live sample does not stall the event loop on JIT compilation."""
-    est = spec.create(100.0)
-    est.update(np.zeros(3), np.array([0.0, 0.0, -9.8]), np.array([0.2, 0.0, 0.4]), 0.01)
-    est.update(np.zeros(3), np.array([0.0, 0.0, -9.8]), None, 0.01)
-
-
 @dataclass
 class VehicleSetup:
     """What the estimators of one vehicle are told about it."""
@@ -164,8 +156,7 @@ class Pipeline:
         labels = [s.label for s in specs]
         if len(set(labels)) != len(labels):
             raise ValueError(f"estimators listed twice: {labels}")
-        for spec in specs:
-            warm_up(spec)
+        # (BridgeService.run compiles the estimators before it serves: bridge.warmup.)
         self.specs = specs
         self.declination_rad = math.radians(declination_deg)  # until a vehicle's is known
         self.vehicles: dict[int, VehicleSetup] = {}

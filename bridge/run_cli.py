@@ -1,4 +1,10 @@
-"""`attitude-bridge run` and `attitude-bridge demo`."""
+"""`attitude-bridge run` and `attitude-bridge demo`.
+
+Settings come from, in increasing precedence: defaults, the ``--config`` TOML file (or
+``ATTITUDE_BRIDGE_CONFIG``), ``ATTITUDE_BRIDGE_*`` environment variables, the command
+line (see :mod:`bridge.config`). Errors are raised as ``ValueError`` / ``OSError`` and
+reported as one line by the CLI's error boundary (:mod:`bridge.cli`).
+"""
 
 from __future__ import annotations
 
@@ -6,9 +12,10 @@ import argparse
 import asyncio
 import contextlib
 import logging
+import os
 import signal
 import sys
-import tomllib
+from collections.abc import Mapping
 
 import estimators
 
@@ -26,10 +33,14 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                         "over MAVLink (default: eskf)")
     p.add_argument("--out", action="append", dest="outs", metavar="URL",
                    help="extra MAVLink output, e.g. udpout:127.0.0.1:14550 (repeatable)")
-    p.add_argument("--mqtt", metavar="URL", help="publish to MQTT: mqtt://[user:pass@]host:port "
-                                                 "or mqtts://... (TLS)")
+    p.add_argument("--mqtt", metavar="URL", help="publish to MQTT: mqtt://host:port or "
+                                                 "mqtts://... (TLS); credentials from "
+                                                 "ATTITUDE_BRIDGE_MQTT_USERNAME/_PASSWORD")
     p.add_argument("--mqtt-username")
-    p.add_argument("--mqtt-password")
+    p.add_argument("--mqtt-password",
+                   help="visible to every user of this machine (ps): prefer the "
+                        "ATTITUDE_BRIDGE_MQTT_PASSWORD environment variable or the "
+                        "settings file")
     p.add_argument("--mqtt-tls", action="store_true", default=None, help="use TLS")
     p.add_argument("--mqtt-ca", metavar="FILE", help="CA bundle for the broker's certificate")
     p.add_argument("--mqtt-cert", metavar="FILE", help="client certificate (mutual TLS)")
@@ -40,7 +51,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help="what RAW_IMU integers mean (default: from the vehicle's autopilot, "
                         "ArduPilot: ardupilot, others: gy86)")
     p.add_argument("--rotation", metavar="NAME",
-                   help="board mounting rotation, PX4/ArduPilot name, e.g. YAW_90")
+                   help="board mounting rotation, a PX4/ArduPilot/MAVLink name, e.g. YAW_90, "
+                        "ROLL_180_YAW_90")
     p.add_argument("--calibration", metavar="FILE.toml",
                    help="sensor calibration to apply to every IMU sample (written by "
                         "`attitude-bridge calibrate`)")
@@ -98,8 +110,17 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help="accelerometer full scale (16)")
     g.add_argument("--mag-range", dest="mag_range_gauss", type=float, metavar="GAUSS",
                    help="magnetometer full scale (8)")
-    p.add_argument("--config", metavar="FILE.toml", help="settings file (options override it)")
+    p.add_argument("--config", metavar="FILE.toml",
+                   help="settings file, keys = these options' names, e.g. peer-timeout = 10 "
+                        "(default: $ATTITUDE_BRIDGE_CONFIG; the environment and options "
+                        "override it)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--record", metavar="FILE.tlog",
+                   help="record every MAVLink frame of the connection, in and out, with "
+                        "its time (replay it with `attitude-bridge replay FILE.tlog`)")
+    p.add_argument("--status-file", metavar="PATH",
+                   help="rewrite the status (JSON) here every second, for `attitude-bridge "
+                        "health` and other local monitors")
     p.add_argument("--profile", dest="emulator_profile", metavar="NAME",
                    help="built-in emulator's motion profile (no --connect), default flight")
     p.add_argument("--seed", dest="emulator_seed", type=int, help="built-in emulator seed")
@@ -115,7 +136,10 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--aid-max-age", dest="aid_max_age_s", type=float, metavar="S",
                    help="a velocity older than this when its IMU sample comes is dropped "
                         "(0.5)")
-    p.add_argument("-v", "--verbose", action="store_true")
+    talk = p.add_mutually_exclusive_group()
+    talk.add_argument("-v", "--verbose", action="store_true",
+                      help="log more (DEBUG; INFO with the live table)")
+    talk.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -137,8 +161,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     demo.set_defaults(func=lambda a: main(a, demo=True), connect=None, table=True)
 
 
-def config_from_args(args: argparse.Namespace, demo: bool) -> BridgeConfig:
-    base = BridgeConfig.from_toml(args.config) if args.config else BridgeConfig()
+#: Settings that only the command line gives (not files nor the environment).
+_ARG_ONLY = ("config", "verbose", "quiet", "func", "command")
+
+
+def config_from_args(args: argparse.Namespace, demo: bool,
+                     environ: Mapping[str, str] | None = None) -> BridgeConfig:
+    """Defaults < settings file < environment < command line."""
+    environ = os.environ if environ is None else environ
+    path = args.config or environ.get("ATTITUDE_BRIDGE_CONFIG")
+    given = BridgeConfig.fields_from_toml(path) if path else {}
+    given.update(BridgeConfig.fields_from_env(environ))
     overrides = {k: getattr(args, k) for k in (
         "connect", "estimators", "outs", "mqtt", "mqtt_username", "mqtt_password", "mqtt_tls",
         "mqtt_ca", "mqtt_cert", "mqtt_key", "mqtt_rate", "board", "rotation", "calibration",
@@ -149,10 +182,11 @@ def config_from_args(args: argparse.Namespace, demo: bool) -> BridgeConfig:
         "truth_source", "max_peers", "peer_timeout_s", "max_source_rate", "source_timeout_s",
         "evict_after_s", "clock_resync_s", "reinit_gap_s", "reinit_settle_s", "idle_timeout_s",
         "gyro_range_dps", "accel_range_g", "mag_range_gauss", "emulator_autopilot",
-        "emulator_gps", "aiding", "aid_max_age_s")}
+        "emulator_gps", "aiding", "aid_max_age_s", "record", "status_file")}
+    base = BridgeConfig(**given)
     if demo:
         overrides["connect"] = None
-        if not args.estimators and not args.config:
+        if not args.estimators and "estimators" not in given:
             overrides["estimators"] = [n for n in DEMO_ESTIMATORS if n in estimators.names()]
         if base.duration is None and args.duration is None:
             overrides["duration"] = 30.0
@@ -167,16 +201,19 @@ async def serve(cfg: BridgeConfig) -> int:
     from .emulator import builtin_emulator
     from .service import BridgeService
     from .table import LiveTable, summary
+    from .warmup import LineProgress
 
-    # numba compiles the filters on the very first run (a minute or two, then cached on
-    # disk): say so, or a newcomer stares at a silent terminal.
-    print("attitude-bridge: preparing estimators (compiled on first use, then cached)...",
-          file=sys.stderr, flush=True)
     emulator = None
     if not cfg.connect:
         # (Its declination comes from its position like any vehicle's.)
         emulator = builtin_emulator(cfg)
     service = BridgeService(cfg, emulator)
+    # numba compiles each filter on its very first use (up to a minute each, then cached
+    # on disk; `attitude-bridge warmup` does it ahead): show which one, never a silent
+    # terminal.
+    progress = LineProgress("attitude-bridge: preparing estimators (compiled on first "
+                            "use, then cached)", len(cfg.estimators))
+    service.on_progress = progress
     if cfg.table:
         service.on_status = LiveTable()
     stop = asyncio.Event()
@@ -184,18 +221,26 @@ async def serve(cfg: BridgeConfig) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError):
             loop.add_signal_handler(sig, stop.set)
-    await service.run(stop)
+    try:
+        await service.run(stop)
+    finally:
+        progress.done()
     print(summary(service), flush=True)
     return 0
 
 
+def log_level(args: argparse.Namespace, table: bool) -> int:
+    """A service talks (INFO); with the live table showing it all, warnings only."""
+    if args.quiet:
+        return logging.WARNING
+    if args.verbose:
+        return logging.INFO if table else logging.DEBUG
+    return logging.WARNING if table else logging.INFO
+
+
 def main(args: argparse.Namespace, demo: bool) -> int:
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    try:
-        cfg = config_from_args(args, demo)
-        cfg.validate()
-    except (ValueError, OSError, TypeError, tomllib.TOMLDecodeError) as exc:
-        print(f"attitude-bridge: {exc}", file=sys.stderr)
-        return 2
+    cfg = config_from_args(args, demo)
+    cfg.validate()
+    logging.basicConfig(level=log_level(args, cfg.table), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(message)s")
     return asyncio.run(serve(cfg))

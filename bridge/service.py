@@ -11,12 +11,21 @@ UDP gate (:mod:`bridge.admission`) before parsing, the codec (CRC, signing), the
 vehicle table (:mod:`bridge.vehicle`: unserved system ids, non-primary IMUs, references
 from other senders), ingest (clock, plausibility). Per-vehicle state exists only for
 served vehicles and is dropped after ``evict_after_s`` of silence.
+
+The service talks without the live table: what it learns and what goes wrong is logged
+(INFO: a vehicle served, its autopilot and the IMU stream negotiated, a link regained;
+WARNING: a gap or reboot restarting the estimate, a vehicle gone silent, a stream
+refused or below its rate, an unreachable MQTT broker). On MQTT each served vehicle
+has a retained ``<prefix>/<sysid>/online``: ``online`` while its attitude is being
+published, ``offline`` when its data stopped or the bridge stopped, and — as the last
+will of a connection of its own — when the bridge died.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import math
 import time
@@ -34,6 +43,7 @@ from .codec import SigningConfig, load_signing_key
 from .compare import compare_all, vehicle_against_truth
 from .config import BridgeConfig
 from .declination import Declination
+from .health import write_status_file
 from .ingest import (
     DROP_CAUSES,
     FLAG_CAUSES,
@@ -44,11 +54,13 @@ from .ingest import (
 from .links import Link, LinkOptions, UdpLink, open_link, parse_url
 from .mav import MAVLinkMessage, mavlink
 from .model import describe, model_of, type_name
-from .mqtt import MqttPublisher, MqttSettings
+from .mqtt import MqttPublisher, MqttSettings, Outgoing
 from .negotiate import Request, StreamNegotiation, board_for, parse_forced
 from .output import AttitudeOutput, euler_zyx
 from .pipeline import Estimate, Pipeline
+from .record import TlogRecorder
 from .vehicle import CONFIGURED, HEARTBEAT, PROVISIONAL, Vehicle
+from .warmup import Progress, warm_up_all
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +85,22 @@ NOT_VEHICLES = frozenset((mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROL
 
 #: Starts an emulator sending to the given UDP port; returns its awaitable run.
 EmulatorStarter = Callable[[int], Awaitable[Any]]
+#: At stop, MQTT gets this long to deliver the last status and the offline states.
+MQTT_FLUSH_S = 1.0
+#: What the JSON on MQTT and in the status file says about its quaternions.
+FRAME = {"frame": "NED", "body_frame": "FRD", "q_order": "wxyz", "north": "true"}
+
+
+def estimator_topics(labels: list[str], names: list[str]) -> dict[str, str]:
+    """Estimator label -> topic name: the estimator's name (``mahony``), with ``-2``,
+    ``-3``... for further instances of the same estimator (their parameters are in the
+    payload; topic names stay stable when a parameter is tuned)."""
+    seen: dict[str, int] = {}
+    out = {}
+    for label, name in zip(labels, names, strict=True):
+        seen[name] = seen.get(name, 0) + 1
+        out[label] = name if seen[name] == 1 else f"{name}-{seen[name]}"
+    return out
 
 
 def is_autopilot(msg: MAVLinkMessage) -> bool:
@@ -119,6 +147,17 @@ class BridgeService:
                 cfg.mqtt, username=cfg.mqtt_username, password=cfg.mqtt_password,
                 tls=cfg.mqtt_tls or None, ca_file=cfg.mqtt_ca, cert_file=cfg.mqtt_cert,
                 key_file=cfg.mqtt_key, topic_prefix=cfg.mqtt_prefix))
+        #: Per served vehicle: a connection holding its online state and last will.
+        self.presence: dict[int, MqttPublisher] = {}
+        self._presence_tasks: list[asyncio.Task] = []
+        specs = self.pipeline.specs
+        self.topics = estimator_topics([s.label for s in specs], [s.name for s in specs])
+        self._user_params = {s.label: s.user_params() for s in specs}
+        self.recorder: TlogRecorder | None = None
+        #: Told each estimator's name before and its seconds after it is compiled.
+        self.on_progress: Progress | None = None
+        self._silent_since: dict[int, float] = {}  # vehicles whose IMU data stopped
+        self._streams_told: dict[int, str] = {}  # IMU stream last logged per vehicle
         self.forced_imu = parse_forced(cfg.imu_message)
         self.vehicles: dict[int, Vehicle] = {}
         for sysid in cfg.vehicles:
@@ -141,37 +180,64 @@ class BridgeService:
         return self.link.local_port
 
     async def run(self, stop: asyncio.Event | None = None) -> dict[int, dict[str, Any]]:
-        """Run until ``stop`` is set or ``cfg.duration`` elapses; return the final status."""
+        """Run until ``stop`` is set or ``cfg.duration`` elapses; return the final status.
+
+        The links open first (a port in use or a host that does not resolve fails at
+        once, as :class:`bridge.links.LinkError`), then the estimators are compiled
+        (``on_progress`` hears about each), then the service starts.
+        """
         stop = stop or asyncio.Event()
         tasks: list[asyncio.Task] = []
-        await self.link.start()
-        for out in self.outs:
-            await out.start()
-        self.started = time.monotonic()
-        if self.mqtt is not None:
-            tasks.append(asyncio.create_task(self.mqtt.run(), name="mqtt"))
-        tasks.append(asyncio.create_task(self._heartbeat_loop(), name="heartbeat"))
-        tasks.append(asyncio.create_task(self._status_loop(), name="status"))
-        if self.emulator is not None:
-            tasks.append(asyncio.create_task(self._run_emulator(stop), name="emulator"))
-        self.ready.set()
+        mqtt_task = None
         try:
+            if self.cfg.record:
+                self.recorder = TlogRecorder(self.cfg.record)
+                self.link.tap = self.recorder.record
+            await self.link.start()
+            for out in self.outs:
+                await out.start()
+            warm_up_all(self.pipeline.specs, self.on_progress)
+            self.started = time.monotonic()
+            self._last_status_wall = self.started
+            if self.mqtt is not None:
+                mqtt_task = asyncio.create_task(self.mqtt.run(), name="mqtt")
+            tasks.append(asyncio.create_task(self._heartbeat_loop(), name="heartbeat"))
+            tasks.append(asyncio.create_task(self._status_loop(), name="status"))
+            if self.emulator is not None:
+                tasks.append(asyncio.create_task(self._run_emulator(stop), name="emulator"))
+            self.ready.set()
             if self.cfg.duration is not None:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(stop.wait(), self.cfg.duration)
             else:
                 await stop.wait()
         finally:
-            for task in tasks:
-                task.cancel()
-            for task in tasks:
-                with contextlib.suppress(asyncio.CancelledError, Exception):
-                    await task
-            self.publish_status()
+            await _cancel(tasks)
+            if self.ready.is_set():
+                self._final_status()
+                await self._flush_mqtt()
+            await _cancel([t for t in (mqtt_task, *self._presence_tasks) if t is not None])
+            for publisher in (self.mqtt, *self.presence.values()):
+                if publisher is not None:
+                    publisher.stats.stopped = True
             await self.link.close()
             for out in self.outs:
                 await out.close()
+            if self.recorder is not None:
+                self.recorder.close()
         return self.last_status
+
+    def _final_status(self) -> None:
+        """The last status, everywhere, with every vehicle offline (the bridge stops)."""
+        self.publish_status()
+        for sysid, presence in self.presence.items():
+            presence.set_retained(presence.topic(sysid, "online"), "offline")
+
+    async def _flush_mqtt(self) -> None:
+        """Give MQTT a moment to deliver what is queued (the last status, offline)."""
+        publishers = [p for p in (self.mqtt, *self.presence.values()) if p is not None]
+        if publishers:
+            await asyncio.gather(*(p.flush(MQTT_FLUSH_S) for p in publishers))
 
     async def _run_emulator(self, stop: asyncio.Event) -> None:
         assert self.emulator is not None
@@ -196,9 +262,59 @@ class BridgeService:
             try:
                 self._request_streams()
                 self._evict()
+                self._watch_streams()
                 self.publish_status()
             except Exception:
                 log.exception("status update failed")
+
+    def _watch_streams(self) -> None:
+        """Say when a vehicle's IMU data stops and when it comes back, and keep its
+        MQTT online state to match."""
+        now = time.monotonic()
+        timeout = self.cfg.source_timeout_s
+        for sysid, vehicle in self.vehicles.items():
+            if vehicle.last_imu == 0.0:
+                continue  # no data yet: nothing to lose
+            stream = vehicle.negotiation.status()
+            if stream["achieved_hz"] is not None and \
+                    self._streams_told.get(sysid) != stream["message"]:
+                self._streams_told[sysid] = stream["message"]
+                log.info("vehicle %d: estimating from %s at %.0f Hz (asked %g Hz: %s), "
+                         "board %s", sysid, stream["message"], stream["achieved_hz"],
+                         stream["requested_hz"], stream["state"],
+                         self.ingest.board_of(sysid).name)
+            silent = now - vehicle.last_imu
+            since = self._silent_since.get(sysid)
+            if silent >= timeout and since is None:
+                self._silent_since[sysid] = vehicle.last_imu
+                log.warning("vehicle %d: no IMU data for %.0f s (link lost, or the vehicle "
+                            "stopped sending)", sysid, silent)
+            elif silent < timeout and since is not None:
+                del self._silent_since[sysid]
+                log.info("vehicle %d: IMU data again after %.1f s", sysid,
+                         vehicle.last_imu - since)
+            if self.mqtt is not None:
+                online = sysid not in self._silent_since
+                presence = self._presence(sysid)
+                presence.set_retained(presence.topic(sysid, "online"),
+                                      "online" if online else "offline")
+        for sysid, presence in self.presence.items():
+            if sysid not in self.vehicles:  # replaced (a provisional vehicle)
+                presence.set_retained(presence.topic(sysid, "online"), "offline")
+
+    def _presence(self, sysid: int) -> MqttPublisher:
+        """The vehicle's own MQTT connection: its online state, and "offline" as the
+        last will (one will per connection, so one connection per vehicle)."""
+        presence = self.presence.get(sysid)
+        if presence is None:
+            assert self.mqtt is not None
+            settings = dataclasses.replace(self.mqtt.settings, client_id=None, queue_size=16)
+            topic = self.mqtt.topic(sysid, "online")
+            presence = self.presence[sysid] = MqttPublisher(
+                settings, will=Outgoing(topic, "offline", True, 1), quiet=True)
+            self._presence_tasks.append(asyncio.create_task(
+                presence.run(), name=f"mqtt online {sysid}"))
+        return presence
 
     # --- who is served -----------------------------------------------------------------
     def _add_vehicle(self, sysid: int, how: str) -> Vehicle:
@@ -351,6 +467,11 @@ class BridgeService:
     def _autopilot_known(self, vehicle: Vehicle, autopilot: int) -> None:
         """What the autopilot is decides what its RAW_IMU integers mean (unless --board
         says) and which IMU stream to ask it for."""
+        entry = mavlink.enums["MAV_AUTOPILOT"].get(autopilot)
+        log.info("vehicle %d: %s autopilot (component %s), %s, heard on %s from %s",
+                 vehicle.sysid, entry.name.removeprefix("MAV_AUTOPILOT_") if entry else
+                 autopilot, vehicle.autopilot_compid, type_name(vehicle.mav_type),
+                 self.link.name, _address(self.link.last_addr))
         vehicle.autopilot = autopilot
         if self.cfg.board is None:
             board = board_for(autopilot)
@@ -400,6 +521,8 @@ class BridgeService:
         negotiation = vehicle.negotiation
         for sample in samples:
             negotiation.observe(key.msg, sample.t)
+            if sample.restart is not None:
+                self._log_restart(vehicle, sample)
             if sample.restart == "reboot" and vehicle.refs is not None:
                 vehicle.refs = None  # the references' clock restarted too
             vel, vel_age = None, 0.0
@@ -414,6 +537,20 @@ class BridgeService:
                 self.output.offer(est)
             if self.mqtt is not None:
                 self._maybe_publish_estimates(vehicle, est)
+
+    def _log_restart(self, vehicle: Vehicle, sample: Any) -> None:
+        """A reboot or an outage restarts the estimate: say so, with the board times."""
+        src = self.pipeline.sources.get(sample.key)
+        before = src.last_sample.t if src is not None and src.last_sample is not None else None
+        was = f"{before:.3f} s" if before is not None else "unknown"
+        if sample.restart == "reboot":
+            log.warning("vehicle %d rebooted (board time went back from %s to %.3f s); "
+                        "estimators restarted, output held %g s while they settle",
+                        vehicle.sysid, was, sample.t, self.cfg.reinit_settle_s)
+        else:
+            log.warning("vehicle %d: IMU data resumed after a gap (board time %s -> %.3f s); "
+                        "estimators restarted, output held %g s while they settle",
+                        vehicle.sysid, was, sample.t, self.cfg.reinit_settle_s)
 
     # --- stream requests -----------------------------------------------------------------
     def _forget_source(self, key) -> None:
@@ -473,19 +610,25 @@ class BridgeService:
             return
         vehicle.next_mqtt_t[est.key] = est.t + self._mqtt_period
         src = self.pipeline.sources[est.key]
+        now = time.time()
+        declination = math.degrees(src.declination_rad)
         for label, estimator in zip(src.labels, src.estimators, strict=True):
             st = estimator.status
             q = st.q
             roll, pitch, yaw = euler_zyx(q)
-            self.mqtt.publish(self.mqtt.topic(est.key.sysid, label), {
-                "sysid": est.key.sysid, "compid": est.key.compid, "imu": est.key.imu,
-                "estimator": label, "primary": label == self.pipeline.primary_label,
-                "time_s": est.t, "time_boot_ms": est.time_boot_ms,
+            name = self.topics[label]
+            self.mqtt.publish(self.mqtt.topic(est.key.sysid, name), {
+                "sysid": est.key.sysid, "estimator": name, "label": label,
+                "params": self._user_params[label],
+                "primary": label == self.pipeline.primary_label,
+                "source": _source(est.key),
+                "time_unix": round(now, 3), "time_s": est.t, "time_boot_ms": est.time_boot_ms,
+                **FRAME, "declination_deg": round(declination, 3),
                 "q": _finite_list(q),
                 "euler_deg": {"roll": _finite(math.degrees(roll)),
                               "pitch": _finite(math.degrees(pitch)),
                               "yaw": _finite(math.degrees(yaw))},
-                "bias_rad_s": _finite_list(st.bias),
+                "gyro_bias_dps": [_finite(math.degrees(b)) for b in st.bias],
                 "flags": {"initialising": st.initialising or est.initialising,
                           "acc_rejected": st.acc_rejected, "mag_rejected": st.mag_rejected},
             })
@@ -534,9 +677,12 @@ class BridgeService:
             c = vehicle_against_truth(vehicle.refs, self.cfg.window_s)
             own = c.to_dict() if c is not None else None
         return {
-            "sysid": vehicle.sysid, "time_s": t_last, "samples": samples,
-            "input_rate_hz": round(rate, 1), "sources": [list(k) for k in sources],
-            "primary": list(vehicle.primary) if vehicle.primary else None,
+            "sysid": vehicle.sysid, "time_unix": round(time.time(), 3), "time_s": t_last,
+            "online": vehicle.last_imu > 0.0 and vehicle.sysid not in self._silent_since,
+            "samples": samples,
+            "input_rate_hz": round(rate, 1), "sources": [_source(k) for k in sources],
+            "primary": _source(vehicle.primary) if vehicle.primary else None,
+            "estimator_topics": {label: self.topics[label] for label in self.topics},
             "admitted_by": vehicle.admitted_by, "source_switches": vehicle.source_switches,
             "drops": drops, "flags": flags, "link": link, "refused": dict(vehicle.refused),
             "clock_pending": pending, "restarts": restarts, "initialising": initialising,
@@ -581,7 +727,11 @@ class BridgeService:
         if self.mqtt is not None:
             m = self.mqtt.stats
             s["mqtt"] = {"connected": m.connected, "published": m.published,
-                         "dropped": m.dropped, "connects": m.connects}
+                         "dropped": m.dropped, "connects": m.connects,
+                         "last_error": m.last_error or None, "stopped": m.stopped}
+        if self.recorder is not None:
+            s["record"] = {"file": str(self.recorder.path), "frames_in":
+                           self.recorder.frames_in, "frames_out": self.recorder.frames_out}
         return s
 
     def publish_status(self) -> None:
@@ -598,8 +748,42 @@ class BridgeService:
                 self.mqtt.publish(self.mqtt.topic(vehicle.sysid, "status"), status)
         for sysid in [s for s in self.last_status if s not in self.vehicles]:
             del self.last_status[sysid]  # replaced (a provisional vehicle)
+        if self.recorder is not None:
+            self.recorder.flush()
+        if self.cfg.status_file:
+            self._write_status_file(link)
         if self.on_status is not None:
             self.on_status(self)
+
+    def _write_status_file(self, link: dict[str, Any]) -> None:
+        status = {"time_unix": round(time.time(), 3),
+                  "uptime_s": round(time.monotonic() - self.started, 1),
+                  "vehicles": {str(k): {n: v for n, v in st.items() if n != "connection"}
+                               for k, st in self.last_status.items()},
+                  "connection": link, "mqtt": link.get("mqtt")}
+        try:
+            write_status_file(self.cfg.status_file, status)
+        except OSError as exc:  # disk full, folder removed: keep serving, say so
+            log.warning("cannot write the status file %s: %s", self.cfg.status_file, exc)
+
+
+def _source(key: Any) -> dict[str, Any]:
+    """An IMU source as an object: who sent it, which message, which IMU."""
+    entry = mavlink.mavlink_map.get(key.msg)
+    return {"sysid": key.sysid, "compid": key.compid,
+            "message": entry.msgname if entry is not None else str(key.msg), "imu": key.imu}
+
+
+def _address(addr: tuple | None) -> str:
+    return f"{addr[0]}:{addr[1]}" if addr else "-"
+
+
+async def _cancel(tasks: list[asyncio.Task]) -> None:
+    for task in tasks:
+        task.cancel()
+    for task in tasks:
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await task
 
 
 def _finite(x: float) -> float | None:

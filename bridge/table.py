@@ -21,11 +21,23 @@ def _fmt(x: float | None, spec: str = "6.2f") -> str:
     return format(x, spec)
 
 
+def lag_text(entry: dict[str, Any]) -> str:
+    """The lag column: milliseconds, or why it is not known (never a grid end shown as
+    if it were measured): "> 200" beyond the search, "–" not measurable."""
+    lag = entry.get("lag_s")
+    if lag is not None:
+        return f"{lag * 1e3:5.0f}"
+    note = entry.get("lag_note", "")
+    if note[:1] in "<>":
+        return note.split(" ms")[0].replace(" ", "").rjust(5)
+    return "    –"
+
+
 def _cmp(entry: dict[str, Any] | None) -> str:
     if not entry:
         return "      -        -      -"
     return (f"{entry['total_deg']:6.2f}/{entry['heading_deg']:5.2f}/"
-            f"{entry['inclination_deg']:5.2f} {entry['lag_s'] * 1e3:5.0f}")
+            f"{entry['inclination_deg']:5.2f} {lag_text(entry)}")
 
 
 def render(service: BridgeService) -> str:
@@ -36,9 +48,7 @@ def render(service: BridgeService) -> str:
              f"in {link['messages_in']} msgs, crc {link['bad_crc']}, "
              f"frame {link['bad_frame']}, unsigned {link['unsigned_rejected']}"]
     if "mqtt" in link:
-        m = link["mqtt"]
-        lines[0] += (f"  mqtt {'up' if m['connected'] else 'DOWN'} "
-                     f"{m['published']} sent {m['dropped']} dropped")
+        lines[0] += "  " + mqtt_text(link["mqtt"])
     lines.append("")
     lines.append(" SYS   RATE Hz  SAMPLES  OUT      DROPS (dup/reord/jump/back/nan)   "
                  "LOST  LAT p50/p99 ms")
@@ -76,6 +86,18 @@ def render(service: BridgeService) -> str:
     lines.append(" * = primary (sent as ATTITUDE_QUATERNION/ATTITUDE); errors are rolling RMS "
                  f"over {service.cfg.window_s:g} s")
     return "\n".join(lines)
+
+
+def mqtt_text(m: dict[str, Any]) -> str:
+    """MQTT state in a few words: live (up / DOWN and why), or after the bridge stopped
+    it (what the session did: a clean stop is not an outage)."""
+    counts = f"{m['published']} sent {m['dropped']} dropped"
+    why = f" ({m['last_error']})" if m.get("last_error") else ""
+    if m.get("stopped"):
+        if m["connects"] == 0:
+            return f"mqtt never connected{why}, {counts}"
+        return f"mqtt ok ({m['connects']} connection(s)), {counts}"
+    return f"mqtt {'up' if m['connected'] else 'DOWN' + why} {counts}"
 
 
 def _own_attitude(service: BridgeService, sysid: int) -> tuple[float, ...] | None:
@@ -156,4 +178,6 @@ def summary(service: BridgeService) -> str:
     causes.update({k: v for k, v in link["refused"].items() if v})
     lines.append(f" connection: {link['peers']} peers answered, refused/dropped "
                  f"{causes or 'nothing'}")
+    if service.recorder is not None:
+        lines.append(f" {service.recorder.summary()}")
     return "\n".join(lines)

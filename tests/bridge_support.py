@@ -205,11 +205,14 @@ def rotating(q0: np.ndarray, omega_frd: np.ndarray, t: float) -> np.ndarray:
 
 async def send_rotating(sender: MavSender, q0: np.ndarray, omega: np.ndarray, seconds: float,
                         rate_hz: float = 500.0, t0_us: int = 1_000_000,
-                        burst: int = 25) -> int:
-    """Stream RAW_IMU of a constant-rate rotation; returns the next time_usec."""
+                        burst: int = 25, sent: dict[int, float] | None = None) -> int:
+    """Stream RAW_IMU of a constant-rate rotation; returns the next time_usec.
+    ``sent``: filled with time_usec -> perf_counter() when that sample was sent."""
     step = round(1e6 / rate_hz)
     for i in range(int(seconds * rate_hz)):
         t_us = t0_us + i * step
+        if sent is not None:
+            sent[t_us] = time.perf_counter()
         sender.send(raw_imu(t_us, rotating(q0, omega, (t_us - t0_us) * 1e-6), omega))
         if i % burst == burst - 1:
             await asyncio.sleep(burst / rate_hz)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 
 import numpy as np
@@ -14,6 +15,7 @@ from bridge_support import (
     angle_deg,
     async_test,
     attitude_of,
+    autopilot_heartbeat,
     euler_q,
     raw_imu,
     rotating,
@@ -226,4 +228,35 @@ async def test_live_comparison_with_the_vehicles_late_stamped_attitude():
         vehicle_cmp = bridge.last_status[1]["compare"]["vehicle"]["quaternion"]
     assert vehicle_cmp["lag_s"] == pytest.approx(-0.030, abs=0.005)
     assert vehicle_cmp["total_deg"] < 0.5
+    v.close()
+
+
+@async_test
+async def test_the_service_says_what_happens(caplog):
+    """Without the table the log tells the story: the vehicle and its stream, data
+    stopping and coming back, a gap and a reboot restarting the estimate."""
+    caplog.set_level(logging.INFO, logger="bridge")
+    q0 = euler_q(0.0, 5.0, 10.0)
+    async with running_bridge(estimators=["quaternion"], status_period_s=0.2,
+                              source_timeout_s=0.6) as bridge:
+        v = MavSender(bridge.port)
+        await v.start()
+        v.send(autopilot_heartbeat())
+        t = await send_static(v, q0, 0.6, t0_us=50_000_000)
+        await asyncio.sleep(1.0)  # silent: more than source_timeout_s and reinit_gap_s
+        t = await send_static(v, q0, 0.6, t0_us=t + 1_000_000)
+        await send_static(v, q0, 1.4, t0_us=200_000)  # rebooted: board time from 0.2 s
+        await wait_until(lambda: bridge.last_status[1]["flags"]["reboot"] == 1, 3.0)
+    text = [r.getMessage() for r in caplog.records]
+    levels = {r.getMessage(): r.levelno for r in caplog.records}
+
+    def said(fragment: str, level: int) -> bool:
+        return any(fragment in m and levels[m] == level for m in text)
+
+    assert said("vehicle 1: PX4 autopilot (component 1)", logging.INFO), text
+    assert said("vehicle 1: estimating from RAW_IMU at", logging.INFO), text
+    assert said("vehicle 1: no IMU data for", logging.WARNING), text
+    assert said("vehicle 1: IMU data again after", logging.INFO), text
+    assert said("vehicle 1: IMU data resumed after a gap (board time 50.", logging.WARNING)
+    assert said("vehicle 1 rebooted (board time went back from", logging.WARNING), text
     v.close()

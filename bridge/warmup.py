@@ -1,0 +1,119 @@
+"""``attitude-bridge warmup``: compile the estimators (and the emulator) ahead of use.
+
+numba compiles each estimator's kernels the first time one is created, about 10–40 s
+each on a small machine, and keeps them in its on-disk cache (next to the package, or
+in ``NUMBA_CACHE_DIR``). ``install.sh`` and the Docker image run this once so that the
+first ``demo`` or ``run`` starts in seconds instead of sitting silent for minutes; the
+bridge itself calls :func:`warm_up` for its own estimators before it serves (cheap when
+cached) and reports the progress per estimator, so a cold start is never silent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable, Iterable
+
+import numpy as np
+
+from estimators.spec import EstimatorSpec
+
+#: Called before (seconds None) and after (seconds taken) each item is compiled.
+Progress = Callable[[str, float | None], None]
+
+
+def warm_up(spec: EstimatorSpec) -> None:
+    """Compile every kernel of one estimator the bridge and replay call: ``update``
+    with and without a magnetometer (compiled when created), and the batch loop."""
+    est = spec.create(100.0)
+    acc, mag = np.array([0.0, 0.0, -9.8]), np.array([0.2, 0.0, 0.4])
+    est.update(np.zeros(3), acc, mag, 0.01)
+    est.update(np.zeros(3), acc, None, 0.01, vel=np.zeros(3), vel_age=0.0)
+    est.run(np.zeros((2, 3)), np.tile(acc, (2, 1)), np.tile(mag, (2, 1)), 0.01)
+    _ = est.q
+
+
+def warm_up_emulator() -> None:
+    """Compile the emulated MPU6050's low-pass filter (the HIL emulator's one kernel)."""
+    from hil import EmulatorConfig, simulate
+
+    simulate(EmulatorConfig(profile="static", duration_s=0.05, seed=0))
+
+
+def warm_up_all(specs: Iterable[EstimatorSpec], progress: Progress | None = None,
+                emulator: bool = False) -> dict[str, float]:
+    """Compile each estimator (and optionally the emulator); seconds taken per item."""
+    jobs: list[tuple[str, Callable[[], None]]] = [
+        (spec.label, lambda s=spec: warm_up(s)) for spec in specs]
+    if emulator:
+        jobs.append(("emulator", warm_up_emulator))
+    taken = {}
+    for name, job in jobs:
+        if progress is not None:
+            progress(name, None)
+        start = time.perf_counter()
+        job()
+        taken[name] = time.perf_counter() - start
+        if progress is not None:
+            progress(name, taken[name])
+    return taken
+
+
+class LineProgress:
+    """Progress on one line of a stream: ``preparing estimators: eskf 31.2 s, mahony
+    ...``, each name shown before its (possibly long) compilation starts."""
+
+    def __init__(self, title: str, total: int | None = None, stream=None) -> None:
+        self.title = title
+        self.total = total  # the line ends after this many items (else at done())
+        self.stream = stream if stream is not None else sys.stderr
+        self.started = False
+        self.finished = 0
+
+    def __call__(self, name: str, seconds: float | None) -> None:
+        s = self.stream
+        if seconds is None:
+            s.write(("" if self.started else f"{self.title}: ") +
+                    ("" if not self.started else ", ") + f"{name} ")
+            self.started = True
+        else:
+            s.write(f"{seconds:.1f} s")
+            self.finished += 1
+            if self.finished == self.total:
+                self.done()
+        s.flush()
+
+    def done(self) -> None:
+        """End the line (once), e.g. before log lines follow."""
+        if self.started:
+            self.stream.write("\n")
+            self.stream.flush()
+            self.started = False
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "warmup", help="compile the estimators now (numba, cached on disk)",
+        description="Compile every estimator's kernels and the emulator's, so the first "
+                    "run starts at once. install.sh runs it; run it again after an "
+                    "upgrade or with another NUMBA_CACHE_DIR.")
+    p.add_argument("names", nargs="*", metavar="ESTIMATOR",
+                   help="only these estimators (default: all, and the emulator)")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    import estimators
+
+    specs = [EstimatorSpec.parse(n) for n in (args.names or estimators.names())]
+    progress = LineProgress("attitude-bridge warmup: compiling",
+                            len(specs) + (0 if args.names else 1))
+    start = time.perf_counter()
+    try:
+        warm_up_all(specs, progress, emulator=not args.names)
+    finally:
+        progress.done()
+    print(f"attitude-bridge warmup: {len(specs)} estimator(s) ready in "
+          f"{time.perf_counter() - start:.1f} s (cached for later runs)", file=sys.stderr)
+    return 0

@@ -1,0 +1,185 @@
+"""The command line as a user meets it: every sub-command given bad input answers with
+one line and exit code 2, never a traceback; settings by option name from TOML files
+and the environment; degrees at the user surface."""
+
+from __future__ import annotations
+
+import math
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bridge.cli import main
+from bridge.config import BridgeConfig, check_rotation
+from bridge.run_cli import config_from_args
+from estimators.spec import EstimatorSpec
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def busy_port():
+    """A UDP port on 127.0.0.1 that another socket holds."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        yield s.getsockname()[1]
+
+
+def bad_inputs(tmp: Path, busy: int) -> list[tuple[list[str], str]]:
+    """(argv, what the one-line error must mention), for every sub-command."""
+    bad_toml = tmp / "bad.toml"
+    bad_toml.write_text("estimator = [\n")
+    typo = tmp / "typo.toml"
+    typo.write_text('conect = "udpin:0.0.0.0:14550"\n')
+    log = tmp / "log.csv"
+    log.write_text("not,a,log\n")
+    return [
+        (["run", "--out", "udpout:nohost.invalid:14550"], "cannot resolve host"),
+        (["run", "--connect", f"udpin:127.0.0.1:{busy}"], "already in use"),
+        (["run", "--connect", "udpin:192.0.2.1:14550"], "not on this machine"),
+        (["run", "--signing-key", "env:ATTITUDE_BRIDGE_TEST_NO_SUCH_VARIABLE"], "not set"),
+        (["run", "--config", str(tmp / "missing.toml")], "does not exist"),
+        (["run", "--config", str(bad_toml)], f"{bad_toml} is not valid TOML"),
+        (["run", "--config", str(typo)], "unknown setting 'conect'"),
+        (["run", "--rotation", "YAW_91"], "unknown rotation 'YAW_91'"),
+        (["run", "--estimator", "mahony:kp=fast"], "kp"),
+        (["run", "--estimator", "eskf:declination_deg=400"], "declination"),
+        (["run", "--imu-rate", "-1"], "imu_rate"),
+        (["run", "--mqtt", "http://broker"], "MQTT URL"),
+        (["run", "--record", str(tmp / "no" / "session.tlog")], "does not exist"),
+        (["demo", "--duration", "-1"], "duration"),
+        (["demo", "--profile", "wobble"], "unknown profile 'wobble'"),
+        (["estimators", "foo"], "unknown estimator 'foo'"),
+        (["hil", "--target", "udp:127.0.0.1:9", "--profile", "wobble"], "unknown profile"),
+        (["hil", "--target", "nowhere"], "udp:HOST:PORT"),
+        (["replay", str(tmp / "missing.tlog")], "missing.tlog"),
+        (["replay", str(log), "--report", str(tmp / "no" / "r.html")], "does not exist"),
+        (["tune", str(tmp / "missing.tlog"), "-e", "mahony", "-p", "kp=0.1:1:3"],
+         "missing.tlog"),
+        (["calibrate", "-o", str(tmp / "c.toml")], "no LOG files"),
+        (["calibrate", "--emulator", "-o", str(tmp / "c.toml"), "--rotation", "YAW_91"],
+         "unknown rotation"),
+        (["warmup", "foo"], "unknown estimator 'foo'"),
+    ]
+
+
+def test_every_subcommand_answers_bad_input_with_one_line(tmp_path, busy_port, capsys):
+    for argv, expected in bad_inputs(tmp_path, busy_port):
+        code = main(argv)
+        err = capsys.readouterr().err
+        assert code == 2, (argv, code, err)
+        assert "Traceback" not in err and err.count("\n") == 1, (argv, err)
+        assert err.startswith(f"attitude-bridge {argv[0]}: error: "), (argv, err)
+        assert expected in err, (argv, err)
+
+
+def test_option_errors_are_argparse_usage_never_a_traceback(capsys):
+    for argv in (["run", "--imu-rate", "fast"], ["bogus"], ["replay"],
+                 ["run", "--board", "pixhawk"]):
+        with pytest.raises(SystemExit) as exit_:
+            main(argv)
+        err = capsys.readouterr().err
+        assert exit_.value.code == 2 and "Traceback" not in err and "error:" in err
+
+
+def test_health_without_a_running_bridge_is_unhealthy_in_one_line(tmp_path, capsys):
+    assert main(["health", "--status-file", str(tmp_path / "status.json")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("unhealthy: no status file")
+
+
+def test_version_and_the_entry_point():
+    """The real entry point, in a process: --version on one line."""
+    out = subprocess.run([sys.executable, "-m", "bridge.cli", "--version"], cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stderr == ""
+    assert out.stdout.startswith("attitude-bridge ") and out.stdout.count("\n") == 1
+    assert "numba" in out.stdout and "pymavlink" in out.stdout
+
+
+def test_rotations_are_the_autopilots_names():
+    for name in ("NONE", "YAW_90", "ROTATION_ROLL_180_YAW_90", "MAV_SENSOR_ROTATION_PITCH_270",
+                 "ROLL_90_PITCH_68_YAW_293", "roll_45"):
+        check_rotation(name)
+    for bad in ("YAW_91", "ROLL_10", "YAW", "SPIN_90"):
+        with pytest.raises(ValueError, match="unknown rotation"):
+            check_rotation(bad)
+
+
+def test_angle_parameters_in_degrees_at_the_user_surface():
+    spec = EstimatorSpec.parse("eskf:declination_deg=3.5,bias_max_dps=20,tilt_init=0.2")
+    assert spec.params["declination"] == pytest.approx(math.radians(3.5))
+    assert spec.params["bias_max"] == pytest.approx(math.radians(20.0))
+    assert spec.params["tilt_init"] == 0.2  # the library's own name stays radians
+    assert spec.label == "eskf:declination_deg=3.5,bias_max_dps=20,tilt_init_deg=11.4592"
+    assert spec.user_params()["declination_deg"] == pytest.approx(3.5)
+    for bad, message in (("eskf:declination_deg=1,declination=0.1", "twice"),
+                         ("mahony:kp_deg=3", "unknown parameter 'kp_deg'"),
+                         ("madgwick:beta_dps=fast", "number of degrees")):
+        with pytest.raises(ValueError, match=message):
+            EstimatorSpec.parse(bad)
+    est = spec.create(100.0)
+    assert est.params.declination == pytest.approx(math.radians(3.5))
+
+
+def test_estimators_listing_shows_degrees(capsys):
+    assert main(["estimators", "eskf"]) == 0
+    out = capsys.readouterr().out
+    assert "declination_deg = 0; magnetic declination [deg]" in out
+    assert "bias_max_dps = 20; " in out and "[deg/s]" in out
+    assert "\n    declination = " not in out
+
+
+def parse(argv: list[str]):
+    from bridge.cli import build_parser
+
+    return build_parser().parse_args(argv)
+
+
+def test_settings_file_takes_option_names_and_the_environment_overrides_it(tmp_path):
+    path = tmp_path / "bridge.toml"
+    path.write_text('connect = "udpin:0.0.0.0:14550"\nestimator = ["mahony", "eskf"]\n'
+                    'out = "udpout:127.0.0.1:14551"\npeer-timeout = 20\nno-aiding = true\n'
+                    'declination-deg = 2.5\nout_rate = 20\nwindow_s = 5.0\n')
+    env = {"ATTITUDE_BRIDGE_OUT_RATE": "25", "ATTITUDE_BRIDGE_MQTT_PASSWORD": "s3cret",
+           "ATTITUDE_BRIDGE_VEHICLE": "1 2", "ATTITUDE_BRIDGE_DATA": "/elsewhere"}
+    cfg = config_from_args(parse(["run", "--config", str(path), "--imu-rate", "500"]),
+                           demo=False, environ=env)
+    cfg.validate()
+    assert cfg.estimators == ["mahony", "eskf"] and cfg.outs == ["udpout:127.0.0.1:14551"]
+    assert (cfg.peer_timeout_s, cfg.aiding, cfg.declination_deg, cfg.window_s) == (
+        20.0, False, 2.5, 5.0)
+    assert (cfg.out_rate, cfg.mqtt_password, cfg.vehicles, cfg.imu_rate) == (
+        25.0, "s3cret", [1, 2], 500.0)
+    # The file by environment; options over the environment.
+    env2 = {"ATTITUDE_BRIDGE_CONFIG": str(path), "ATTITUDE_BRIDGE_NO_AIDING": "false"}
+    cfg2 = config_from_args(parse(["run", "--out-rate", "5"]), demo=False, environ=env2)
+    assert cfg2.aiding is True and cfg2.out_rate == 5.0 and cfg2.peer_timeout_s == 20.0
+    with pytest.raises(ValueError, match="ATTITUDE_BRIDGE_OUT_RTAE: unknown setting"):
+        config_from_args(parse(["run"]), demo=False, environ={"ATTITUDE_BRIDGE_OUT_RTAE": "1"})
+    with pytest.raises(ValueError, match="ATTITUDE_BRIDGE_TABLE: expected true or false"):
+        config_from_args(parse(["run"]), demo=False, environ={"ATTITUDE_BRIDGE_TABLE": "maybe"})
+
+
+def test_every_run_option_is_a_setting_name():
+    """Option names and settings cannot drift apart: each option of `run` is accepted
+    as a TOML key and lands on a field."""
+    from bridge.cli import build_parser
+
+    run = build_parser()._subparsers._group_actions[0].choices["run"]
+    for action in run._actions:
+        long = [o for o in action.option_strings if o.startswith("--")]
+        if not long or action.dest in ("help", "config", "verbose", "quiet"):
+            continue
+        for option in long:
+            field, _ = BridgeConfig.field_of(option)
+            assert field == action.dest, (option, field, action.dest)
+
+
+def test_example_settings_file_loads(tmp_path):
+    cfg = BridgeConfig.from_toml(REPO / "examples" / "bridge.toml")
+    cfg.validate()
+    assert cfg.connect and cfg.estimators[0] == "eskf" and cfg.mqtt

@@ -183,3 +183,40 @@ def test_example_settings_file_loads(tmp_path):
     cfg = BridgeConfig.from_toml(REPO / "examples" / "bridge.toml")
     cfg.validate()
     assert cfg.connect and cfg.estimators[0] == "eskf" and cfg.mqtt
+
+
+def readme_commands() -> list[str]:
+    """Every concrete `attitude-bridge ...` command in the README's code blocks (the
+    synopsis lines, with [optional] parts or placeholders, are not commands)."""
+    import re
+
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    found = []
+    for block in re.findall(r"```[a-z]*\n(.*?)```", text, re.S):
+        for line in block.replace("\\\n", " ").splitlines():
+            line = line.split("  #")[0].split("&&")[-1].strip()
+            if line.startswith("attitude-bridge ") and not any(
+                    c in line for c in ("[", "|", "...")):
+                found.append(line)
+    return found
+
+
+def test_readme_commands_are_valid(tmp_path, monkeypatch):
+    """The README's commands parse with the real parser, and those of the bridge make
+    settings that pass validation (in a folder with the files they name)."""
+    import shlex
+
+    from bridge.cli import build_parser
+    from imu.calibration import SensorCalibration
+
+    (tmp_path / "examples").mkdir()
+    (tmp_path / "examples" / "bridge.toml").write_text(
+        (REPO / "examples" / "bridge.toml").read_text())
+    SensorCalibration().save(tmp_path / "calib.toml", "identity")
+    monkeypatch.chdir(tmp_path)
+    commands = readme_commands()
+    assert len(commands) >= 8, commands
+    for command in commands:
+        args = build_parser().parse_args(shlex.split(command)[1:])
+        if args.command in ("run", "demo"):
+            config_from_args(args, demo=args.command == "demo", environ={}).validate()

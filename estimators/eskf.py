@@ -525,43 +525,6 @@ def _velocity_prior(state: np.ndarray, params: np.ndarray, T: float, sigma: floa
                           rn, rn, rn, _GATE[3])
 
 
-@_core.kernel(inline="always")
-def _mag_steadiness(state: np.ndarray, params: np.ndarray, mx: float, my: float, mz: float,
-                    mag_ok: bool, dt: float) -> None:
-    """Whether the field's direction in the body has stayed put (pre-filtered, against
-    its low-pass, like the rest test): the one sensor that sees a turn about the
-    vertical without trusting the gyro."""
-    if not mag_ok:
-        state[_MAG_STEADY] = 0.0
-        return
-    n = math.sqrt(mx * mx + my * my + mz * mz)
-    ux, uy, uz = mx / n, my / n, mz / n
-    k = 1.0 - math.exp(-dt / params[_P_REST_TAU])
-    kp = 1.0 - math.exp(-dt / params[_P_REST_PRE_TAU])
-    if state[_MLP] == 0.0 and state[_MLP + 1] == 0.0 and state[_MLP + 2] == 0.0:
-        for j in range(3):
-            state[_MPF + j] = state[_MLP + j] = (ux, uy, uz)[j]
-    d2 = 0.0
-    for j in range(3):
-        state[_MPF + j] += kp * ((ux, uy, uz)[j] - state[_MPF + j])
-        state[_MLP + j] += k * (state[_MPF + j] - state[_MLP + j])
-        d2 += (state[_MPF + j] - state[_MLP + j]) ** 2
-    state[_MAG_STEADY] = 1.0 if d2 < params[_P_REST_MAG] ** 2 else 0.0
-
-
-@_core.kernel
-def _rest_update(state: np.ndarray, params: np.ndarray, T: float, aided: bool) -> None:
-    """At rest the low-passed gyro is the bias. (Not a zero-velocity update: a vehicle
-    cruising steadily looks just as still to the gyro and accelerometer.)"""
-    _clear_rows(state, 3)
-    for i in range(3):
-        state[_H + i * _NX + _BI + i] = 1.0
-    rn = params[_P_REST_N] ** 2 / T
-    _kalman_update(state, params, 3, state[_GLP] - state[_core.B0],
-                   state[_GLP + 1] - state[_core.B0 + 1], state[_GLP + 2] - state[_core.B0 + 2],
-                   rn, rn, rn, 0.0)
-
-
 @_core.kernel
 def _mag_disturbed(state: np.ndarray, params: np.ndarray, norm: float, dip: float,
                    T: float) -> bool:

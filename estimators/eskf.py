@@ -109,6 +109,9 @@ class EskfParams(CommonParams):
                                        "density [m/s·sqrt(s)] (no aiding, no drag model)")
     velocity_scale: float = param(math.inf, "bounded-velocity prior: speeds well above this "
                                             "[m/s] weaken it (noise × (1 + |v|²/scale²))")
+    velocity_scale_tau: float = param(0.0, "time constant [s] of the low-pass of the squared "
+                                           "speed that velocity_scale judges (0: the "
+                                           "speed now)")
     velocity_reset_time: float = param(3.0, "velocity re-anchored after this long [s] of "
                                             "rejected velocity information")
     vel_aid_noise: float = param(0.4, "velocity aiding measurement noise [m/s] (GPS or the "
@@ -156,7 +159,7 @@ class EskfParams(CommonParams):
 _PARAM_FIELDS = (
     "update_period", "gravity", "gyro_noise", "bias_rw", "bias_init", "bias_max",
     "tilt_init", "heading_init", "velocity_rw", "velocity_prior", "velocity_scale",
-    "velocity_reset_time",
+    "velocity_scale_tau", "velocity_reset_time",
     "vel_aid_noise", "drag", "drag_sigma_init", "drag_noise", "vertical_velocity_prior",
     "mag_noise", "mag_norm_th", "mag_dip_th", "mag_ref_time", "mag_provisional_time",
     "mag_new_time", "mag_reset_time",
@@ -164,7 +167,8 @@ _PARAM_FIELDS = (
     "rest_gravity_noise", "rest_prefilter_tau", "rest_bias_th", "rest_mag_th", "aid_timeout",
 )
 (_P_PERIOD, _P_GRAV, _P_GYR_N, _P_B_RW, _P_B_INIT, _P_B_MAX, _P_TILT0, _P_HEAD0,
- _P_V_RW, _P_V_PRIOR, _P_V_SCALE, _P_V_RESET, _P_AID_N, _P_DRAG, _P_DRAG0, _P_DRAG_N, _P_VZ_PRIOR,
+ _P_V_RW, _P_V_PRIOR, _P_V_SCALE, _P_V_SCALE_TAU, _P_V_RESET, _P_AID_N, _P_DRAG, _P_DRAG0,
+ _P_DRAG_N, _P_VZ_PRIOR,
  _P_MAG_N, _P_MAG_NORM, _P_MAG_DIP, _P_MAG_REF_T, _P_MAG_PROV_T, _P_MAG_NEW_T, _P_MAG_RESET,
  _P_MAG_REF_TAU,
  _P_REST_GYR, _P_REST_ACC, _P_REST_T, _P_REST_TAU, _P_REST_N,
@@ -202,6 +206,7 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _MN_REF, _MD_REF, _REF_OK,  # field norm/dip reference, 1 once set
  _MN_C, _MD_C, _CAND_T,  # candidate field norm/dip, how long it has held [s]
  _V_OK_T,  # RUN_T when velocity information was last accepted
+ _SPEED2,  # low-passed squared speed [m²/s²] (how far from bounded the motion is)
  _AID_T,  # RUN_T of the last velocity aiding measurement (-inf: none)
  _PEND,  # 3: velocity aiding measurement waiting for the next update (NaN: none)
  _PEND_AGE,  # its age at the update [s]
@@ -217,7 +222,7 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _K,  # scratch: gain (_NX × 3)
  _X,  # scratch: error-state correction (_NX)
  _STATE_SIZE) = _layout(3, 1, _NX * _NX, 1, 1, 3, 3, 3, 1, 3, 3, 3, 3, 3, 3, 1, 1, 1, 1, 1, 1, 1, 1,
-                        1, 1, 1, 3, 1, 3, 1, 3, 1, 1, 1, 1, 3 * _NX, 3 * _NX, 3 * _NX, _NX)
+                        1, 1, 1, 1, 3, 1, 3, 1, 3, 1, 1, 1, 1, 3 * _NX, 3 * _NX, 3 * _NX, _NX)
 
 
 @_core.kernel(inline="always")
@@ -520,46 +525,13 @@ def _velocity_prior(state: np.ndarray, params: np.ndarray, T: float, sigma: floa
                               _GATE[1])
     scale = params[_P_V_SCALE]
     v2 = state[_V] ** 2 + state[_V + 1] ** 2 + state[_V + 2] ** 2
+    tau = params[_P_V_SCALE_TAU]
+    if tau > 0.0:
+        state[_SPEED2] += (1.0 - math.exp(-T / tau)) * (v2 - state[_SPEED2])
+        v2 = state[_SPEED2]
     rn *= 1.0 + v2 / (scale * scale)
     return _kalman_update(state, params, 3, -state[_V], -state[_V + 1], -state[_V + 2],
                           rn, rn, rn, _GATE[3])
-
-
-@_core.kernel(inline="always")
-def _mag_steadiness(state: np.ndarray, params: np.ndarray, mx: float, my: float, mz: float,
-                    mag_ok: bool, dt: float) -> None:
-    """Whether the field's direction in the body has stayed put (pre-filtered, against
-    its low-pass, like the rest test): the one sensor that sees a turn about the
-    vertical without trusting the gyro."""
-    if not mag_ok:
-        state[_MAG_STEADY] = 0.0
-        return
-    n = math.sqrt(mx * mx + my * my + mz * mz)
-    ux, uy, uz = mx / n, my / n, mz / n
-    k = 1.0 - math.exp(-dt / params[_P_REST_TAU])
-    kp = 1.0 - math.exp(-dt / params[_P_REST_PRE_TAU])
-    if state[_MLP] == 0.0 and state[_MLP + 1] == 0.0 and state[_MLP + 2] == 0.0:
-        for j in range(3):
-            state[_MPF + j] = state[_MLP + j] = (ux, uy, uz)[j]
-    d2 = 0.0
-    for j in range(3):
-        state[_MPF + j] += kp * ((ux, uy, uz)[j] - state[_MPF + j])
-        state[_MLP + j] += k * (state[_MPF + j] - state[_MLP + j])
-        d2 += (state[_MPF + j] - state[_MLP + j]) ** 2
-    state[_MAG_STEADY] = 1.0 if d2 < params[_P_REST_MAG] ** 2 else 0.0
-
-
-@_core.kernel
-def _rest_update(state: np.ndarray, params: np.ndarray, T: float, aided: bool) -> None:
-    """At rest the low-passed gyro is the bias. (Not a zero-velocity update: a vehicle
-    cruising steadily looks just as still to the gyro and accelerometer.)"""
-    _clear_rows(state, 3)
-    for i in range(3):
-        state[_H + i * _NX + _BI + i] = 1.0
-    rn = params[_P_REST_N] ** 2 / T
-    _kalman_update(state, params, 3, state[_GLP] - state[_core.B0],
-                   state[_GLP + 1] - state[_core.B0 + 1], state[_GLP + 2] - state[_core.B0 + 2],
-                   rn, rn, rn, 0.0)
 
 
 @_core.kernel
@@ -923,9 +895,8 @@ class Eskf(Estimator):
                 raise ValueError(f"parameter {f!r} must be a finite number > 0, got {value!r}")
         if not p.velocity_scale > 0.0:  # inf: no weakening
             raise ValueError(f"parameter 'velocity_scale' must be > 0, got {p.velocity_scale!r}")
-        for f in ("bias_rw", "velocity_rw", "drag", "mag_ref_time", "mag_provisional_time",
-                  "mag_new_time", "mag_reset_time",
-                  "rest_time"):
+        for f in ("velocity_scale_tau", "bias_rw", "velocity_rw", "drag", "mag_ref_time",
+                  "mag_provisional_time", "mag_new_time", "mag_reset_time", "rest_time"):
             value = getattr(p, f)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"parameter {f!r} must be a finite number >= 0, got "

@@ -102,14 +102,14 @@ class EskfParams(CommonParams):
                                           "from one sample of a vibrating vehicle can be "
                                           "this far off)")
     heading_init: float = param(30.0 * _DEG, "initial heading standard deviation [rad]")
-    velocity_rw: float = param(0.05, "velocity random walk [m/s/sqrt(s)]: how fast the "
+    velocity_rw: float = param(0.02, "velocity random walk [m/s/sqrt(s)]: how fast the "
                                      "velocity may drift from what the accelerometer says "
                                      "(accelerometer noise, scale errors, lever arm)")
     velocity_prior: float = param(0.2, "bounded-velocity pseudo-measurement v ≈ 0, noise "
                                        "density [m/s·sqrt(s)] (no aiding, no drag model)")
-    velocity_scale: float = param(math.inf, "bounded-velocity prior: speeds well above this "
+    velocity_scale: float = param(0.5, "bounded-velocity prior: speeds well above this "
                                             "[m/s] weaken it (noise × (1 + |v|²/scale²))")
-    velocity_scale_tau: float = param(0.0, "time constant [s] of the low-pass of the squared "
+    velocity_scale_tau: float = param(2.0, "time constant [s] of the low-pass of the squared "
                                            "speed that velocity_scale judges (0: the "
                                            "speed now)")
     velocity_reset_time: float = param(3.0, "velocity re-anchored after this long [s] of "
@@ -513,8 +513,11 @@ def _drag_update(state: np.ndarray, params: np.ndarray, T: float, r: tuple) -> b
 
 @_core.kernel
 def _velocity_prior(state: np.ndarray, params: np.ndarray, T: float, sigma: float,
-                    axes: int) -> bool:
-    """Pseudo-measurement v ≈ 0 on the last ``axes`` axes (3: all, 1: vertical)."""
+                    axes: int, weaken: bool = False) -> bool:
+    """Pseudo-measurement v ≈ 0 on the last ``axes`` axes (3: all, 1: vertical).
+    ``weaken``: by the speed (``velocity_scale``), so that a vehicle moving fast is not
+    pulled level; not at rest, where nothing accelerates and a velocity left over from a
+    knock must be refused (and then re-anchored) rather than kept."""
     _clear_rows(state, axes)
     first = 3 - axes
     for k in range(axes):
@@ -529,7 +532,8 @@ def _velocity_prior(state: np.ndarray, params: np.ndarray, T: float, sigma: floa
     if tau > 0.0:
         state[_SPEED2] += (1.0 - math.exp(-T / tau)) * (v2 - state[_SPEED2])
         v2 = state[_SPEED2]
-    rn *= 1.0 + v2 / (scale * scale)
+    if weaken:
+        rn *= 1.0 + v2 / (scale * scale)
     return _kalman_update(state, params, 3, -state[_V], -state[_V + 1], -state[_V + 2],
                           rn, rn, rn, _GATE[3])
 
@@ -763,7 +767,7 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
             if not aided:
                 _velocity_prior(state, params, T, params[_P_VZ_PRIOR], 1)
         elif not aided:
-            if _velocity_prior(state, params, T, params[_P_V_PRIOR], 3):
+            if _velocity_prior(state, params, T, params[_P_V_PRIOR], 3, not at_rest):
                 state[_V_OK_T] = now
             else:
                 state[_core.ACC_REJ] = 1.0

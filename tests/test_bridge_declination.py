@@ -89,8 +89,10 @@ async def test_declination_from_the_px4_parameter_reaches_the_estimate():
     assert d["deg"] == pytest.approx(emulator_declination_deg(), abs=1e-3)  # float32, 3 dp
     assert abs(auto.heading_deg - right.heading_deg) <= 0.5, (auto, right)
     # The parameter came within the first samples and turned the output in place: from
-    # then on the same estimate as with the flag...
-    assert np.max(apart_deg(q_auto, q_right)) < 0.01
+    # then on the same estimate as with the flag (a late parameter would leave the two
+    # runs the whole declination, ~3°, apart; a sample the loaded kernel dropped from the
+    # fast-paced stream in one run only leaves them hundredths of a degree apart)...
+    assert np.max(apart_deg(q_auto, q_right)) < 0.1
     # ...which is the declination away from the one without any.
     _, _, _, q_none = await fly("px4", gps=False, declination_deg=0.0)
     assert np.median(apart_deg(q_none, q_right)) == pytest.approx(

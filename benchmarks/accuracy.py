@@ -71,7 +71,7 @@ GRID: dict[str, tuple[float, ...]] = {
     "gyro_noise": (0.008, 0.012, 0.018),
     "vel_aid_noise": (0.4, 0.8),
     "velocity_scale": (0.5, 1.0, math.inf),
-    "velocity_scale_tau": (0.0, 2.0),
+    "velocity_scale_tau": (0.0, 0.25, 0.5, 1.0, 2.0),
 }
 #: The tuning may not buy a better mean with a worse worst case than this (issue 9).
 WORST_INCLINATION_DEG = 1.8

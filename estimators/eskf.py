@@ -36,10 +36,13 @@ walk and a velocity random walk.
   zero prior (``vertical_velocity_prior``) so that it cannot wander into ``Rᵀv``.
 * *Bounded velocity* (otherwise: hand-held, or an unknown vehicle): ``v ≈ 0`` with
   density ``velocity_prior``; the velocity random walk lets it wander slowly, so a steady
-  motion is not mistaken for a tilt. Chi-square gated: when the motion stops looking
-  bounded (a vehicle that flies away) the pseudo-measurement is rejected and the gyro
-  carries the attitude; after ``velocity_reset_time`` of rejections the velocity is
-  re-anchored at zero, which changes no attitude.
+  motion is not mistaken for a tilt. The faster the vehicle seems to move (squared speed
+  low-passed over ``velocity_scale_tau``), the weaker the statement (noise ×
+  ``1 + |v|²/velocity_scale²``): an unknown vehicle that flies away at 10 m/s is carried
+  by the gyro instead of being pulled level. Not at rest, where nothing accelerates: a
+  velocity left over from a knock is then refused like any outlier. Chi-square gated;
+  after ``velocity_reset_time`` of rejections the velocity is re-anchored at zero, which
+  changes no attitude.
 * *Rest* (VQF's rest detector and thresholds: gyro and accelerometer within
   ``rest_gyr_th``/``rest_acc_th`` of their low-pass for ``rest_time``, and the low-passed
   gyro within ``rest_bias_th`` of the bias estimate, so that a steady turn is not rest):

@@ -345,7 +345,7 @@ async def test_one_primary_imu_per_vehicle_is_published():
         assert len(msgs) == 600
         assert angle_deg(attitude_of(msgs[5:]), expected).max() < 1.0
         assert status["refused"]["not_primary"] == 600
-        assert status["primary"][3] == (imu_id or 0)
+        assert status["primary"]["imu"] == (imu_id or 0)
 
 
 @async_test
@@ -558,7 +558,7 @@ async def test_message_types_have_their_own_clocks_and_the_requested_one_wins():
         await wait_until(lambda: len(vehicle.listener.of_type("ATTITUDE_QUATERNION")) >= 900)
         bridge.publish_status()
         first = bridge.last_status[1]
-    assert first["primary"][2] == mavlink.MAVLINK_MSG_ID_HIGHRES_IMU
+    assert first["primary"]["message"] == "HIGHRES_IMU"
     assert first["source_switches"] == 1 and first["refused"]["not_primary"] == 300
     msgs = vehicle.listener.of_type("ATTITUDE_QUATERNION")
     assert len(msgs) == 900  # 300 SCALED, then every HIGHRES sample

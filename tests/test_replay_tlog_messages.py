@@ -197,8 +197,9 @@ def test_declination_from_parameter_position_or_option(tmp_path, motion):
     # ... and the command line over both; the estimators get it in radians.
     ev = replay.evaluate(replay.load(path), ["mahony"], declination_deg=-7.0)
     assert ev.prepared.declination.deg == -7.0
-    est = replay.evaluate(replay.load(path), ["mahony:declination=0.3"])
-    assert est.runs["mahony:declination=0.3"].spec.params["declination"] == 0.3
+    est = replay.evaluate(replay.load(path), ["mahony:declination_deg=17.2"])
+    run = est.runs["mahony:declination_deg=17.2"]
+    assert run.spec.params["declination"] == pytest.approx(np.radians(17.2))
 
 
 def test_corrupt_records_are_skipped_and_counted(tmp_path, motion):

@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+FLOOD_SENDER = REPO / "benchmarks" / "flood_sender.py"
 sys.path.insert(0, str(REPO))
 
 from bridge.codec import signing_key_from_text  # noqa: E402
@@ -143,35 +144,6 @@ def vehicle_process(port: int, seconds: float, out: mp.Queue, host: str = "127.0
              "latency_ms": {k: round(float(np.percentile(lat, p)), 2) for k, p in
                             (("p50", 50), ("p90", 90), ("p99", 99))} if len(lat) else {},
              "max_error_deg": round(float(np.max(err)), 2)})
-
-
-FLOOD = """
-import os, socket, sys, time
-os.environ["MAVLINK20"] = "1"
-from pymavlink.dialects.v20 import common as mavlink
-port, seconds, rate = int(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3])
-mav = mavlink.MAVLink(None, 77, 1)
-pkts = []
-for i in range(256):
-    pkts.append(mavlink.MAVLink_raw_imu_message(i * 1000, 0, 0, -4096, 0, 0, 0, 100, 0, 300,
-                                                0, 0).pack(mav))
-    mav.seq = (mav.seq + 1) % 256
-s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-s.bind(("127.0.0.9", 0))
-dst = ("127.0.0.1", port)
-start = time.perf_counter()
-sent = 0
-while (now := time.perf_counter() - start) < seconds:
-    due = int(now * rate)
-    while sent < due:
-        try:
-            s.sendto(pkts[sent & 255], dst)
-        except OSError:
-            pass
-        sent += 1
-    time.sleep(0.0002)
-print(sent)
-"""
 
 
 # --- the bridge as a process ------------------------------------------------------------------
@@ -292,7 +264,7 @@ def bench_flood(rate: float = 100_000.0, seconds: float = 10.0) -> dict:
                                                   args=(port, seconds, q))
         vehicle.start()
         time.sleep(1.0)
-        floods = [subprocess.Popen(["nice", "-n", "19", sys.executable, "-c", FLOOD,
+        floods = [subprocess.Popen(["nice", "-n", "19", sys.executable, str(FLOOD_SENDER),
                                     str(port), str(seconds - 1.0), str(flood_rate / 2)],
                                    stdout=subprocess.PIPE, text=True)
                   for _ in range(2 if flood_rate else 0)]

@@ -16,6 +16,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -460,37 +461,7 @@ async def test_evicts_a_silent_vehicles_state_and_restarts_it_on_return():
 
 
 # --- flood fairness -----------------------------------------------------------------------
-FLOOD = """
-import socket, sys, time
-import os
-os.environ["MAVLINK20"] = "1"
-from pymavlink.dialects.v20 import common as mavlink
-port, seconds, rate = int(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3])
-mav = mavlink.MAVLink(None, 77, 1)
-pkts = []
-for i in range(256):
-    pkts.append(mavlink.MAVLink_raw_imu_message(i * 1000, 0, 0, -4096, 0, 0, 0, 100, 0, 300,
-                                                0, 0).pack(mav))
-    mav.seq = (mav.seq + 1) % 256
-s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-s.bind(("127.0.0.9", 0))
-dst = ("127.0.0.1", port)
-start = time.perf_counter()
-sent = 0
-while True:
-    now = time.perf_counter() - start
-    if now >= seconds:
-        break
-    due = int(now * rate)
-    while sent < due:
-        try:
-            s.sendto(pkts[sent & 255], dst)
-        except OSError:
-            pass
-        sent += 1
-    time.sleep(0.0005)
-print(sent)
-"""
+FLOOD_SENDER = Path(__file__).resolve().parents[1] / "benchmarks" / "flood_sender.py"
 
 
 @async_test
@@ -502,7 +473,7 @@ async def test_a_flood_from_another_system_id_does_not_starve_the_vehicle():
     async with flying(dict(out_rate=50.0, estimators=["mahony"]), dict()) as (bridge, vehicle):
         vehicle.send(autopilot_heartbeat())
         await asyncio.sleep(0.3)
-        flood = subprocess.Popen([sys.executable, "-c", FLOOD, str(bridge.port), "3.0",
+        flood = subprocess.Popen([sys.executable, str(FLOOD_SENDER), str(bridge.port), "3.0",
                                   "40000"], stdout=subprocess.PIPE, text=True)
         try:
             t0 = 1_000_000

@@ -112,7 +112,7 @@ class EskfParams(CommonParams):
                                        "density [m/s·sqrt(s)] (no aiding, no drag model)")
     velocity_scale: float = param(0.5, "bounded-velocity prior: speeds well above this "
                                             "[m/s] weaken it (noise × (1 + |v|²/scale²))")
-    velocity_scale_tau: float = param(2.0, "time constant [s] of the low-pass of the squared "
+    velocity_scale_tau: float = param(0.5, "time constant [s] of the low-pass of the squared "
                                            "speed that velocity_scale judges (0: the "
                                            "speed now)")
     velocity_reset_time: float = param(3.0, "velocity re-anchored after this long [s] of "

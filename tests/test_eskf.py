@@ -233,11 +233,16 @@ def _level_hold_with(lin_acc: np.ndarray, rate: float):
 
 
 def test_shock_is_mostly_rejected():
-    """A 0.2 s impact of 8 g sideways: it adds 16 m/s to the integrated velocity, which
-    the bounded-velocity prior soon rejects as an outlier (flagged). The first updates of
-    the impact still pull (peak measured 1.8° against 8.3° for Mahony with kp = 0.74);
-    once the board has been still for rest_time, the gravity it measures at rest removes
-    that: back under 0.1° 4 s after the impact (measured 0.01°)."""
+    """A 0.2 s impact of 8 g sideways: it adds 16 m/s to the integrated velocity. So
+    fast a "motion" weakens the bounded-velocity prior (velocity_scale), so the impact
+    barely tilts the estimate (peak measured 1.6° against 8.3° for Mahony with
+    kp = 0.74) and the weakened prior's bounded pull adds a little more until the board
+    is seen at rest (rest detection waits for the accelerometer's low-pass to settle:
+    3.5 s after the impact). At rest the prior is not weakened: the 16 m/s is refused
+    (flagged), gravity measured at rest brings the tilt back, and after
+    velocity_reset_time (3 s) of refusals the velocity is re-anchored: under 0.1°
+    6.5 s after the impact (the price of not pulling a fast vehicle level: with
+    velocity_scale = ∞ it was 4 s)."""
     rate = 400.0
     lin = np.zeros((int(12 * rate), 3))
     shock = slice(int(2 * rate), int(2.2 * rate))
@@ -245,21 +250,22 @@ def test_shock_is_mostly_rejected():
     truth, acc, mag = _level_hold_with(lin, rate)
     res = estimators.run("eskf", np.zeros_like(acc), acc, mag, rate_hz=rate)
     assert not res.acc_rejected[:shock.start].any()
-    assert res.acc_rejected[shock.start:shock.stop + int(0.1 * rate)].any()
+    still = shock.stop + int(4 * rate)  # rest detected 3.5 s after the impact
+    assert res.acc_rejected[shock.stop:still].any()
     _, incl = _errors_deg(res.q, truth)
     mahony = estimators.batch("mahony", np.zeros_like(acc), acc, mag, rate_hz=rate, kp=0.74)
     _, incl_mahony = _errors_deg(mahony, truth)
     assert incl.max() < 2.5 and incl.max() < incl_mahony.max() / 3.0, incl.max()
-    assert incl[shock.stop + int(4 * rate):].max() < 0.1
+    assert incl[shock.stop + int(7 * rate):].max() < 0.1
 
 
 def test_manoeuvre_acceleration_is_mostly_absorbed_by_the_velocity():
     """A horizontal manoeuvre, +4 m/s² for 1 s then −4 m/s² for 1 s (velocity back to
     zero): the accelerometer's 22° of apparent tilt goes into the integrated velocity,
     but 4 m/s is more than the bounded-velocity prior (tuned on hand-held motion) expects,
-    so part of it is taken for tilt: peak measured 6.6° against Mahony's 11.5°, back to
-    < 0.1° after 15 s. (Aiding or the multirotor model handle such a vehicle: tests
-    below.)"""
+    so part of it is taken for tilt: peak measured 2.2° against Mahony's 11.5° (the prior
+    weakens as the speed grows), back to < 0.1° after 9.4 s. (Aiding or the multirotor
+    model handle such a vehicle: tests below.)"""
     rate = 400.0
     lin = np.zeros((int(20 * rate), 3))
     lin[int(2 * rate):int(3 * rate), 1] = 4.0
@@ -269,7 +275,7 @@ def test_manoeuvre_acceleration_is_mostly_absorbed_by_the_velocity():
     _, incl = _errors_deg(res.q, truth)
     mahony = estimators.batch("mahony", np.zeros_like(acc), acc, mag, rate_hz=rate, kp=0.74)
     _, incl_mahony = _errors_deg(mahony, truth)
-    assert incl.max() < 7.5 and incl.max() < 0.65 * incl_mahony.max(), incl.max()
+    assert incl.max() < 3.0 and incl.max() < 0.3 * incl_mahony.max(), incl.max()
     assert incl[int(19 * rate):].max() < 0.1
 
 
@@ -506,7 +512,7 @@ def test_non_positive_parameters_are_rejected():
 # Measured with the defaults (total, heading, inclination in degrees); the defaults were
 # chosen by benchmarks/accuracy.py (leave-one-trial-out, docs/accuracy.md). Tolerance: +10 %.
 BROAD_TRIAL = "28_disturbed_stationary_magnet_A"
-BROAD_MEASURED = (2.41, 2.11, 1.17)
+BROAD_MEASURED = (2.36, 2.01, 1.23)
 
 
 def test_broad_regression(data_dir):

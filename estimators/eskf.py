@@ -131,8 +131,10 @@ class EskfParams(CommonParams):
     mag_dip_th: float = param(10.0 * _DEG, "magnetic disturbance: dip-angle deviation [rad]")
     mag_ref_time: float = param(5.0, "a field consistent this long [s] becomes the first "
                                      "reference")
-    mag_provisional_time: float = param(0.5, "before that, a field consistent this long [s] "
-                                             "is a provisional reference")
+    mag_provisional_time: float = param(math.inf, "before that, a field consistent this "
+                                                  "long [s] is a provisional reference "
+                                                  "(opt-in, e.g. 0.5: magnets near a board "
+                                                  "at start-up; inf: off)")
     mag_new_time: float = param(20.0, "a disturbed but consistent field becomes the new "
                                       "reference after this long [s]")
     mag_reset_time: float = param(5.0, "an undisturbed field whose heading innovations are "
@@ -902,8 +904,11 @@ class Eskf(Estimator):
                 raise ValueError(f"parameter {f!r} must be a finite number > 0, got {value!r}")
         if not p.velocity_scale > 0.0:  # inf: no weakening
             raise ValueError(f"parameter 'velocity_scale' must be > 0, got {p.velocity_scale!r}")
+        if not p.mag_provisional_time >= 0.0:  # inf: no provisional reference
+            raise ValueError("parameter 'mag_provisional_time' must be >= 0, got "
+                             f"{p.mag_provisional_time!r}")
         for f in ("velocity_scale_tau", "bias_rw", "velocity_rw", "drag", "mag_ref_time",
-                  "mag_provisional_time", "mag_new_time", "mag_reset_time", "rest_time"):
+                  "mag_new_time", "mag_reset_time", "rest_time"):
             value = getattr(p, f)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"parameter {f!r} must be a finite number >= 0, got "

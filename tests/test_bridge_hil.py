@@ -155,6 +155,10 @@ FAULTS = {
 #: 10 s of convergence as the fault-free flight; magnets come every ~3 s, and each
 #: must be followed by 2 s without one to be judged.
 FAULT_DURATION_S = {"vibration": 15.0, "mag_disturbance": 20.0}
+#: Magnets from the first second on come before eskf has learned the field's reference:
+#: the start-up rule for them (a provisional reference) is opt-in, since it costs 0.1° on
+#: a real PX4 flight (docs/accuracy.md), so this board's user turns it on.
+FAULT_ESTIMATOR = {"mag_disturbance": f"{PRIMARY}:mag_provisional_time=0.5"}
 
 
 def check_counts(kind: str, injected: dict, status: dict) -> None:
@@ -257,7 +261,8 @@ async def test_fault_is_counted_and_estimate_recovers(kind):
     duration = FAULT_DURATION_S.get(kind, 10.0)
     cfg = EmulatorConfig(profile="flight", duration_s=duration, seed=5, fast=True,
                          faults=FAULTS[kind], **CALIBRATED)
-    listener, stats, status = await run_emulator_through_bridge(cfg)
+    listener, stats, status = await run_emulator_through_bridge(
+        cfg, estimators=[FAULT_ESTIMATOR.get(kind, PRIMARY)])
     rec, q_offline = offline_run(cfg)
     status["injected"] = stats.faults.to_dict()
     check_counts(kind, status["injected"], status)

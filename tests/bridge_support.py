@@ -249,3 +249,19 @@ def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+async def stream_emulator(bridge, cfg, out_port: int, share: float = 1.0):
+    """Run the emulator ``cfg`` into ``bridge`` and, for the truth, to ``out_port``; then
+    wait until the bridge has handled ``share`` of its IMU messages (and 0.3 s more for
+    the last outputs). Returns the emulator's stats."""
+    from hil import Emulator
+
+    stats = await Emulator(cfg).run(targets=[("127.0.0.1", bridge.port),
+                                             ("127.0.0.1", out_port)])
+    n_imu = stats.messages[cfg.imu_message]
+    await wait_until(lambda: sum(s.accepted + s.dropped
+                                 for s in bridge.ingest.sources.values()) >= share * n_imu,
+                     timeout=10.0)
+    await asyncio.sleep(0.3)
+    return stats

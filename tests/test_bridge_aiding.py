@@ -9,7 +9,6 @@ estimator on the same samples and GPS fixes.
 
 from __future__ import annotations
 
-import asyncio
 import math
 
 import numpy as np
@@ -22,6 +21,7 @@ from bridge_support import (
     raw_imu,
     running_bridge,
     send_static,
+    stream_emulator,
     wait_until,
 )
 
@@ -33,7 +33,7 @@ from bridge.mav import mavlink
 from estimators import metrics
 from estimators import quat as Q
 from estimators.eskf import MULTIROTOR_DRAG_PER_S
-from hil import Emulator, EmulatorConfig, GpsConfig, simulate
+from hil import EmulatorConfig, GpsConfig, simulate
 from imu.calibration_fit import fit_calibration
 
 SEED, RATE_HZ, DURATION_S = 3, 250.0, 25.0
@@ -55,13 +55,7 @@ async def stream(cfg: EmulatorConfig, **settings):
     async with running_bridge(estimators=["eskf"], out_rate=50.0, imu_rate=cfg.imu_rate_hz,
                               max_source_rate=1e7,  # --fast: faster than real time
                               outs=[f"udpout:127.0.0.1:{out_port}"], **settings) as bridge:
-        stats = await Emulator(cfg).run(targets=[("127.0.0.1", bridge.port),
-                                                 ("127.0.0.1", out_port)])
-        n_imu = stats.messages[cfg.imu_message]
-        await wait_until(lambda: sum(s.accepted + s.dropped
-                                     for s in bridge.ingest.sources.values()) >= n_imu,
-                         timeout=10.0)
-        await asyncio.sleep(0.3)
+        await stream_emulator(bridge, cfg, out_port)
         bridge.publish_status()
         status = bridge.last_status[1]
     listener.close()

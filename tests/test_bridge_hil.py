@@ -13,14 +13,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from bridge_support import UdpListener, async_test, running_bridge, wait_until
+from bridge_support import UdpListener, async_test, running_bridge, stream_emulator
 
 import estimators
 from bridge.emulator import emulator_declination_deg
 from estimators import metrics
 from estimators import quat as Q
 from estimators.eskf import MULTIROTOR_DRAG_PER_S
-from hil import Emulator, EmulatorConfig, FaultConfig, simulate
+from hil import EmulatorConfig, FaultConfig, simulate
 from hil.sensors.hmc5883l import Hmc5883lConfig
 from hil.sensors.mpu6050 import Mpu6050Config
 
@@ -44,13 +44,7 @@ async def run_emulator_through_bridge(cfg: EmulatorConfig, **bridge_settings):
                 "outs": [f"udpout:127.0.0.1:{out_port}"]}
     settings.update(bridge_settings)
     async with running_bridge(**settings) as bridge:
-        stats = await Emulator(cfg).run(targets=[("127.0.0.1", bridge.port),
-                                                 ("127.0.0.1", out_port)])
-        n_imu = stats.messages[cfg.imu_message]
-        await wait_until(lambda: sum(s.accepted + s.dropped
-                                     for s in bridge.ingest.sources.values()) >= n_imu * 0.95,
-                         timeout=10.0)
-        await asyncio.sleep(0.3)
+        stats = await stream_emulator(bridge, cfg, out_port, share=0.95)
         bridge.publish_status()
         status = bridge.last_status[cfg.sysid]
     listener.close()

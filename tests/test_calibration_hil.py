@@ -15,14 +15,14 @@ import math
 
 import numpy as np
 import pytest
-from bridge_support import UdpListener, running_bridge, wait_until
+from bridge_support import UdpListener, running_bridge, stream_emulator
 
 import estimators
 from bridge.calibrate_cli import emulator_samples
 from bridge.emulator import emulator_declination_deg
 from estimators import metrics
 from estimators import quat as Q
-from hil import Emulator, EmulatorConfig, simulate
+from hil import EmulatorConfig, simulate
 from hil.motion import CALIBRATION_POSES_DEG, calibration_duration_s
 from hil.sensors.hmc5883l import Hmc5883lConfig
 from hil.sensors.mpu6050 import Mpu6050
@@ -187,13 +187,7 @@ async def stream_through_bridge(cfg: EmulatorConfig, calibration: str) -> UdpLis
                               declination_deg=emulator_declination_deg(),
                               outs=[f"udpout:127.0.0.1:{out_port}"],
                               calibration=calibration) as bridge:
-        stats = await Emulator(cfg).run(targets=[("127.0.0.1", bridge.port),
-                                                 ("127.0.0.1", out_port)])
-        n_imu = stats.messages[cfg.imu_message]
-        await wait_until(lambda: sum(s.accepted + s.dropped
-                                     for s in bridge.ingest.sources.values()) >= n_imu,
-                         timeout=10.0)
-        await asyncio.sleep(0.3)
+        await stream_emulator(bridge, cfg, out_port)
     listener.close()
     return listener
 

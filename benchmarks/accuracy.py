@@ -66,12 +66,13 @@ TAKEOFF_CLIMB_M = 1.0
 #: The grid the leave-one-trial-out tuning chooses from (eskf parameter -> values).
 GRID: dict[str, tuple[float, ...]] = {
     "velocity_prior": (0.1, 0.2, 0.4),
-    "velocity_rw": (0.02, 0.05, 0.1),
+    "velocity_rw": (0.02, 0.1),
     "mag_noise": (0.15, 0.25, 0.4),
     "gyro_noise": (0.008, 0.012, 0.018),
+    "gyro_rate_noise": (0.0, 0.002, 0.003, 0.005),
     "vel_aid_noise": (0.4, 0.8),
-    "velocity_scale": (0.5, 1.0, math.inf),
-    "velocity_scale_tau": (0.0, 0.25, 0.5, 1.0, 2.0),
+    "velocity_scale": (0.5, 1.0),
+    "velocity_scale_tau": (0.25, 0.5, 1.0),
 }
 #: The tuning may not buy a better mean with a worse worst case than this (issue 9).
 WORST_INCLINATION_DEG = 1.8
@@ -82,9 +83,10 @@ KNOCK_PEAK_DEG = 2.5
 QUICK_GRID: dict[str, tuple[float, ...]] = {
     "velocity_prior": (0.2,),
     "velocity_rw": (0.1,),
-    "mag_noise": (0.15, 0.25),
-    "gyro_noise": (0.012,),
-    "vel_aid_noise": (0.1, 0.4),
+    "mag_noise": (0.25, 0.4),
+    "gyro_noise": (0.008,),
+    "gyro_rate_noise": (0.0, 0.003),
+    "vel_aid_noise": (0.4, 0.8),
 }
 
 

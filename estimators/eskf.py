@@ -20,8 +20,10 @@ velocity ``v`` (NED), drag coefficient ``μ``. Strapdown ``q ← q ⊗ exp((ω �
 the IMU rate): ``x = [δθ (world frame, 3), δb (3), δv (3), δμ]``, true attitude
 ``exp(δθ) ⊗ q``. Over a period ``T`` with the specific force integrated to ``ΔV``
 (world frame): ``δθ' = δθ − R·T·δb``, ``δv' = δv − [ΔV]×·δθ``; process noise from the
-gyro (angle random walk, covering its noise and unmodelled errors), the bias random
-walk and a velocity random walk.
+gyro (angle random walk, covering its noise and unmodelled errors, plus a part that
+grows with the rotation rate: scale-factor and axis-misalignment errors only turn into
+attitude error while the body turns, so a fast turn is when the filter must lean on
+the velocity information), the bias random walk and a velocity random walk.
 
 **Measurements** (noise given as densities, so the numbers hold from 100 Hz to 8 kHz):
 
@@ -95,8 +97,12 @@ class EskfParams(CommonParams):
                                        "integrated, so the filter's cost and behaviour do "
                                        "not depend on the IMU rate")
     gravity: float = param(G, "gravity [m/s^2]")
-    gyro_noise: float = param(0.012, "attitude random walk [rad/sqrt(s)]: gyro noise plus "
+    gyro_noise: float = param(0.008, "attitude random walk [rad/sqrt(s)]: gyro noise plus "
                                      "its unmodelled errors (scale, misalignment)")
+    gyro_rate_noise: float = param(0.003, "attitude random walk per rotation rate [sqrt(s)]: "
+                                        "a gyro's scale-factor and axis-misalignment "
+                                        "errors turn into attitude error in proportion "
+                                        "to how fast it turns")
     bias_rw: float = param(1e-4, "gyro-bias random walk [rad/s/sqrt(s)]")
     bias_init: float = param(0.5 * _DEG, "initial gyro-bias standard deviation [rad/s]")
     bias_max: float = param(20.0 * _DEG, "bias estimate clip per axis [rad/s] (the "
@@ -105,7 +111,7 @@ class EskfParams(CommonParams):
                                           "from one sample of a vibrating vehicle can be "
                                           "this far off)")
     heading_init: float = param(30.0 * _DEG, "initial heading standard deviation [rad]")
-    velocity_rw: float = param(0.02, "velocity random walk [m/s/sqrt(s)]: how fast the "
+    velocity_rw: float = param(0.1, "velocity random walk [m/s/sqrt(s)]: how fast the "
                                      "velocity may drift from what the accelerometer says "
                                      "(accelerometer noise, scale errors, lever arm)")
     velocity_prior: float = param(0.2, "bounded-velocity pseudo-measurement v ≈ 0, noise "
@@ -117,7 +123,7 @@ class EskfParams(CommonParams):
                                            "speed now)")
     velocity_reset_time: float = param(3.0, "velocity re-anchored after this long [s] of "
                                             "rejected velocity information")
-    vel_aid_noise: float = param(0.4, "velocity aiding measurement noise [m/s] (GPS or the "
+    vel_aid_noise: float = param(0.8, "velocity aiding measurement noise [m/s] (GPS or the "
                                       "autopilot's estimate: their errors are correlated "
                                       "over seconds, so more than the white noise)")
     drag: float = param(0.0, "multirotor rotor-drag model: initial drag coefficient "
@@ -126,7 +132,7 @@ class EskfParams(CommonParams):
     drag_noise: float = param(0.3, "drag measurement noise density [m/s^2·sqrt(s)]")
     vertical_velocity_prior: float = param(1.0, "multirotor: vertical velocity ≈ 0 "
                                                 "pseudo-measurement density [m/s·sqrt(s)]")
-    mag_noise: float = param(0.25, "magnetometer heading noise density [rad·sqrt(s)]")
+    mag_noise: float = param(0.4, "magnetometer heading noise density [rad·sqrt(s)]")
     mag_norm_th: float = param(0.1, "magnetic disturbance: relative field-norm deviation")
     mag_dip_th: float = param(10.0 * _DEG, "magnetic disturbance: dip-angle deviation [rad]")
     mag_ref_time: float = param(5.0, "a field consistent this long [s] becomes the first "
@@ -162,7 +168,7 @@ class EskfParams(CommonParams):
 
 
 _PARAM_FIELDS = (
-    "update_period", "gravity", "gyro_noise", "bias_rw", "bias_init", "bias_max",
+    "update_period", "gravity", "gyro_noise", "gyro_rate_noise", "bias_rw", "bias_init", "bias_max",
     "tilt_init", "heading_init", "velocity_rw", "velocity_prior", "velocity_scale",
     "velocity_scale_tau", "velocity_reset_time",
     "vel_aid_noise", "drag", "drag_sigma_init", "drag_noise", "vertical_velocity_prior",
@@ -171,7 +177,7 @@ _PARAM_FIELDS = (
     "mag_ref_tau", "rest_gyr_th", "rest_acc_th", "rest_time", "rest_tau", "rest_noise",
     "rest_gravity_noise", "rest_prefilter_tau", "rest_bias_th", "rest_mag_th", "aid_timeout",
 )
-(_P_PERIOD, _P_GRAV, _P_GYR_N, _P_B_RW, _P_B_INIT, _P_B_MAX, _P_TILT0, _P_HEAD0,
+(_P_PERIOD, _P_GRAV, _P_GYR_N, _P_GYR_RATE_N, _P_B_RW, _P_B_INIT, _P_B_MAX, _P_TILT0, _P_HEAD0,
  _P_V_RW, _P_V_PRIOR, _P_V_SCALE, _P_V_SCALE_TAU, _P_V_RESET, _P_AID_N, _P_DRAG, _P_DRAG0,
  _P_DRAG_N, _P_VZ_PRIOR,
  _P_MAG_N, _P_MAG_NORM, _P_MAG_DIP, _P_MAG_REF_T, _P_MAG_PROV_T, _P_MAG_NEW_T, _P_MAG_RESET,
@@ -194,6 +200,7 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _MUS,  # drag coefficient μ [1/s]
  _P,  # covariance of the error state, row-major _NX × _NX
  _ACC_T,  # time integrated since the last Kalman update [s]
+ _TURN2,  # ∫|ω − b|² dt over that time [rad²/s]
  _FB_T,  # the part of it covered by usable accelerometer samples [s]
  _DV,  # 3: ∫R·f dt over that time (world)
  _FB,  # 3: ∫f dt (body, as measured), for the drag measurement
@@ -207,6 +214,7 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _MLP,  # 3: its low-pass
  _MAG_STEADY,  # 1 while the magnetometer's direction in the body is steady
  _REST_T,  # how long rest conditions have held [s]
+ _REST_ANCHORED,  # 1 once the velocity was re-anchored in this rest period
  _LP_OK,  # 1 once the rest low-passes are seeded
  _MN_REF, _MD_REF, _REF_OK,  # field norm/dip reference, 1 once set
  _MN_C, _MD_C, _CAND_T,  # candidate field norm/dip, how long it has held [s]
@@ -226,8 +234,9 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _PHT,  # scratch: P·Hᵀ (_NX × 3)
  _K,  # scratch: gain (_NX × 3)
  _X,  # scratch: error-state correction (_NX)
- _STATE_SIZE) = _layout(3, 1, _NX * _NX, 1, 1, 3, 3, 3, 1, 3, 3, 3, 3, 3, 3, 1, 1, 1, 1, 1, 1, 1, 1,
-                        1, 1, 1, 1, 3, 1, 3, 1, 3, 1, 1, 1, 1, 3 * _NX, 3 * _NX, 3 * _NX, _NX)
+ _STATE_SIZE) = _layout(3, 1, _NX * _NX, 1, 1, 1, 3, 3, 3, 1, 3, 3, 3, 3, 3, 3, 1, 1, 1, 1,
+                        1, 1, 1, 1, 1, 1, 1, 1, 1, 3, 1, 3, 1, 3, 1, 1, 1, 1,
+                        3 * _NX, 3 * _NX, 3 * _NX, _NX)
 
 
 @_core.kernel(inline="always")
@@ -288,7 +297,7 @@ def _predict_covariance(state: np.ndarray, params: np.ndarray, T: float) -> None
         state[_pi(i, 0)] -= T * (r[0] * b0 + r[1] * b1 + r[2] * b2)
         state[_pi(i, 1)] -= T * (r[3] * b0 + r[4] * b1 + r[5] * b2)
         state[_pi(i, 2)] -= T * (r[6] * b0 + r[7] * b1 + r[8] * b2)
-    qa = params[_P_GYR_N] ** 2 * T
+    qa = params[_P_GYR_N] ** 2 * T + params[_P_GYR_RATE_N] ** 2 * state[_TURN2]
     qb = params[_P_B_RW] ** 2 * T
     qv = params[_P_V_RW] ** 2 * T
     for i in range(3):
@@ -754,6 +763,8 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
     if at_rest:
         _rest_update(state, params, T, aided)
         r = _rotation(state)
+    else:
+        state[_REST_ANCHORED] = 0.0
     if state[_FB_T] > 0.0:
         # Velocity information: aiding, rotor drag, or the bounded-velocity prior.
         if math.isfinite(state[_PEND]) or math.isfinite(state[_PEND + 1]) or \
@@ -776,6 +787,12 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
                 state[_V_OK_T] = now
             else:
                 state[_core.ACC_REJ] = 1.0
+                if at_rest and state[_REST_ANCHORED] <= 0.0:
+                    # A body at rest does not move: a velocity refused as the rest begins
+                    # is what a knock or a fast motion left in the integral, not a tilt,
+                    # so it is re-anchored now instead of after velocity_reset_time.
+                    _recover_velocity(state, params, r, aided)
+                    state[_REST_ANCHORED] = 1.0
         if now - state[_V_OK_T] > params[_P_V_RESET]:
             _recover_velocity(state, params, _rotation(state), aided)
     state[_PEND] = state[_PEND + 1] = state[_PEND + 2] = math.nan
@@ -845,6 +862,7 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
     state[_DV + 1] += fy * dt
     state[_DV + 2] += fz * dt
     state[_ACC_T] += dt
+    state[_TURN2] += ((gx - b0) ** 2 + (gy - b1) ** 2 + (gz - b2) ** 2) * dt
     _mag_steadiness(state, params, mx, my, mz, mag_ok, dt)
     _rest_detection(state, params, gx, gy, gz, ax, ay, az, acc_ok, dt)
     state[_MAG_DT] += dt
@@ -872,6 +890,7 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
     T = state[_ACC_T]
     _kalman_step(state, params, T)
     state[_ACC_T] = 0.0
+    state[_TURN2] = 0.0
     state[_FB_T] = 0.0
     for j in range(3):
         state[_DV + j] = 0.0
@@ -907,8 +926,8 @@ class Eskf(Estimator):
         if not p.mag_provisional_time >= 0.0:  # inf: no provisional reference
             raise ValueError("parameter 'mag_provisional_time' must be >= 0, got "
                              f"{p.mag_provisional_time!r}")
-        for f in ("velocity_scale_tau", "bias_rw", "velocity_rw", "drag", "mag_ref_time",
-                  "mag_new_time", "mag_reset_time", "rest_time"):
+        for f in ("gyro_rate_noise", "velocity_scale_tau", "bias_rw", "velocity_rw", "drag",
+                  "mag_ref_time", "mag_new_time", "mag_reset_time", "rest_time"):
             value = getattr(p, f)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"parameter {f!r} must be a finite number >= 0, got "

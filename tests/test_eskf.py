@@ -122,10 +122,11 @@ def _world_vertical_turn(seconds: float, rate: float):
 def test_vertical_gyro_bias_is_learned_in_motion_from_the_magnetometer():
     """Never at rest, 1 °/s bias along the world vertical: only the heading innovations
     see it, and the Kalman gain's bias rows learn it (residual measured 0.02 °/s after
-    120 s, bound 0.05; the magnetometer's heading noise density 0.25 rad·√s makes this
-    a matter of a minute or two); the heading error of the last 10 s stays below 1°
-    (measured 0.50°) while the same filter with a bias-free model (bias_init ~ 0) is off
-    by 20°."""
+    120 s, bound 0.05; the magnetometer's heading noise density, 0.4 rad·√s as chosen on
+    the recordings, makes this a matter of minutes); the heading error of the last 10 s
+    stays below 1.5° (measured 1.04° falling to 0.87°; 0.44° with mag_noise 0.25, whose
+    magnetometer time constants are ~1.6× shorter) while the same filter with a
+    bias-free model (bias_init ~ 0) is off by 20°."""
     rate = 100.0
     truth, body_rate, vertical = _world_vertical_turn(120.0, rate)
     acc, mag = _sensors(truth)
@@ -135,7 +136,7 @@ def test_vertical_gyro_bias_is_learned_in_motion_from_the_magnetometer():
     fixed = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, bias_init=1e-9, bias_rw=0.0)
     assert np.all(np.abs(res.bias[-1] - bias) < 0.05 * DEG), np.degrees(res.bias[-1] - bias)
     last = slice(int(110 * rate), None)
-    assert _errors_deg(res.q[last], truth[last])[0].max() < 1.0
+    assert _errors_deg(res.q[last], truth[last])[0].max() < 1.5
     assert _errors_deg(fixed.q[last], truth[last])[0].max() > 5.0
 
 
@@ -143,10 +144,11 @@ def test_vertical_bias_step_is_followed_when_the_board_is_known_to_jump():
     """A 5 °/s bias step along the vertical at 30 s (an MPU6050 offset jump; not clipped
     at bias_max 20 °/s). The default bias random walk (1e-4 rad/s/√s, right for every real
     recording we have) follows it slowly: the heading error is still > 20° at 45 s
-    (measured 37°). A board known to jump is run with a faster random walk, bias_rw =
-    0.02 rad/s/√s: bias within 1 °/s of the new value after 10 s (measured 0.35), heading
-    error under 2° from 15 s after the step on (measured 0.33°), while the horizontal
-    bias components stay within 0.2 °/s."""
+    (measured 44°). A board known to jump is run with a faster random walk, bias_rw =
+    0.02 rad/s/√s: bias within 1 °/s of the new value after 15 s (measured 0.01; the
+    default magnetometer noise density, 0.4 rad·√s, sets the pace: 0.34 after 10 s with
+    mag_noise 0.25), heading error under 2° from 20 s after the step on (measured 0.43°),
+    while the horizontal bias components stay within 0.2 °/s."""
     rate = 100.0
     truth, body_rate, vertical = _world_vertical_turn(60.0, rate)
     acc, mag = _sensors(truth)
@@ -155,12 +157,12 @@ def test_vertical_bias_step_is_followed_when_the_board_is_known_to_jump():
     gyr[step:] += 5.0 * DEG * vertical
     slow = estimators.run("eskf", gyr, acc, mag, rate_hz=rate)
     res = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, bias_rw=0.02)
-    learned = res.bias[step + int(10 * rate)]
+    learned = res.bias[step + int(15 * rate)]
     assert abs(learned @ vertical - 6.0 * DEG) < 1.0 * DEG, np.degrees(learned @ vertical)
     horizontal = res.bias - (res.bias @ vertical)[:, None] * vertical
     assert np.linalg.norm(horizontal[step:], axis=1).max() < 0.2 * DEG
     heading, _ = _errors_deg(res.q, truth)
-    assert heading[step + int(15 * rate):].max() < 2.0
+    assert heading[step + int(20 * rate):].max() < 2.0
     assert _errors_deg(slow.q, truth)[0][step + int(15 * rate)] > 20.0
 
 
@@ -235,14 +237,13 @@ def _level_hold_with(lin_acc: np.ndarray, rate: float):
 def test_shock_is_mostly_rejected():
     """A 0.2 s impact of 8 g sideways: it adds 16 m/s to the integrated velocity. So
     fast a "motion" weakens the bounded-velocity prior (velocity_scale), so the impact
-    barely tilts the estimate (peak measured 1.6° against 8.3° for Mahony with
+    barely tilts the estimate (peak measured 1.4° against 8.3° for Mahony with
     kp = 0.74) and the weakened prior's bounded pull adds a little more until the board
     is seen at rest (rest detection waits for the accelerometer's low-pass to settle:
     3.5 s after the impact). At rest the prior is not weakened: the 16 m/s is refused
-    (flagged), gravity measured at rest brings the tilt back, and after
-    velocity_reset_time (3 s) of refusals the velocity is re-anchored: under 0.1°
-    6.5 s after the impact (the price of not pulling a fast vehicle level: with
-    velocity_scale = ∞ it was 4 s)."""
+    (flagged) and, since a body at rest does not move, re-anchored at once; gravity
+    measured at rest brings the tilt back: under 0.1° 4 s after the impact (measured
+    3.6 s)."""
     rate = 400.0
     lin = np.zeros((int(12 * rate), 3))
     shock = slice(int(2 * rate), int(2.2 * rate))
@@ -256,7 +257,37 @@ def test_shock_is_mostly_rejected():
     mahony = estimators.batch("mahony", np.zeros_like(acc), acc, mag, rate_hz=rate, kp=0.74)
     _, incl_mahony = _errors_deg(mahony, truth)
     assert incl.max() < 2.5 and incl.max() < incl_mahony.max() / 3.0, incl.max()
-    assert incl[shock.stop + int(7 * rate):].max() < 0.1
+    assert incl[shock.stop + int(4 * rate):].max() < 0.1
+
+
+def test_gyro_scale_errors_in_fast_rotation_are_held_by_the_rate_noise():
+    """An uncalibrated gyro (0.5 % scale, 0.2-0.3 % axis-misalignment errors) tumbling at
+    up to 400 °/s: its attitude error grows with how fast it turns, which the attitude
+    noise proportional to the rotation rate (gyro_rate_noise) tells the filter, so the
+    velocity (the accelerometer) holds the tilt more firmly while it turns: inclination
+    RMS after 10 s measured 1.26° against 1.56° with gyro_rate_noise = 0."""
+    rate = 400.0
+    t = np.arange(int(30 * rate)) / rate
+    body_rate = np.stack([400.0 * np.sin(2 * np.pi * 0.7 * t),
+                          300.0 * np.sin(2 * np.pi * 0.45 * t + 1.0),
+                          350.0 * np.sin(2 * np.pi * 0.3 * t + 2.0)], axis=1) * DEG
+    steps = body_rate / rate
+    truth = np.empty((len(t), 4))
+    truth[0] = [1.0, 0.0, 0.0, 0.0]
+    for i in range(1, len(t)):
+        angle = np.linalg.norm(steps[i - 1])
+        truth[i] = Q.multiply(truth[i - 1], Q.from_axis_angle(steps[i - 1] / angle, angle))
+    acc, mag = _sensors(truth)
+    errors = np.array([[1.005, 0.003, -0.002], [-0.002, 0.995, 0.003], [0.002, -0.003, 1.004]])
+    gyr = body_rate @ errors.T
+    scored = slice(int(10 * rate), None)
+
+    def inclination_rms(**params: float) -> float:
+        q = estimators.batch("eskf", gyr, acc, mag, rate_hz=rate, **params)
+        return float(np.sqrt(np.mean(_errors_deg(q[scored], truth[scored])[1] ** 2)))
+
+    assert estimators.estimator_class("eskf").Params().gyro_rate_noise > 0.0
+    assert inclination_rms() < 0.9 * inclination_rms(gyro_rate_noise=0.0)
 
 
 def test_manoeuvre_acceleration_is_mostly_absorbed_by_the_velocity():
@@ -512,7 +543,7 @@ def test_non_positive_parameters_are_rejected():
 # Measured with the defaults (total, heading, inclination in degrees); the defaults were
 # chosen by benchmarks/accuracy.py (leave-one-trial-out, docs/accuracy.md). Tolerance: +10 %.
 BROAD_TRIAL = "28_disturbed_stationary_magnet_A"
-BROAD_MEASURED = (2.36, 2.01, 1.23)
+BROAD_MEASURED = (2.19, 1.88, 1.13)
 
 
 def test_broad_regression(data_dir):

@@ -831,6 +831,7 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
     if state[_FROM_SAMPLE] > 0.0:
         _first_step(state, params, mx, my, mz, mag_ok)
     b0, b1, b2 = state[_core.B0], state[_core.B0 + 1], state[_core.B0 + 2]
+    turn2 = (gx - b0) ** 2 + (gy - b1) ** 2 + (gz - b2) ** 2  # |ω − b|²
     grav = params[_P_GRAV]
     if acc_ok:
         state[_FB] += ax * dt
@@ -862,7 +863,7 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
     state[_DV + 1] += fy * dt
     state[_DV + 2] += fz * dt
     state[_ACC_T] += dt
-    state[_TURN2] += ((gx - b0) ** 2 + (gy - b1) ** 2 + (gz - b2) ** 2) * dt
+    state[_TURN2] += turn2 * dt
     _mag_steadiness(state, params, mx, my, mz, mag_ok, dt)
     _rest_detection(state, params, gx, gy, gz, ax, ay, az, acc_ok, dt)
     state[_MAG_DT] += dt
@@ -871,7 +872,7 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
         # (RAW_IMU): a repeat describes the body as it was when the reading was taken,
         # so it is used only while the body has not turned since.
         if mx == state[_MAG_PREV] and my == state[_MAG_PREV + 1] and mz == state[_MAG_PREV + 2]:
-            state[_MAG_TURN] += math.sqrt((gx - b0) ** 2 + (gy - b1) ** 2 + (gz - b2) ** 2) * dt
+            state[_MAG_TURN] += math.sqrt(turn2) * dt
         else:
             state[_MAG_TURN] = 0.0
             state[_MAG_PREV], state[_MAG_PREV + 1], state[_MAG_PREV + 2] = mx, my, mz

@@ -82,7 +82,13 @@ AID_V = 10  # 3: last velocity measurement per axis [m/s]
 AID_VT = 13  # 3: when it was valid, on the RUN_T clock [s] (-inf: none yet)
 AID_A = 16  # 3: linear acceleration from the last two measurements per axis [m/s^2]
 RUN_T = 19  # run clock: sum of the steps of the samples processed [s]
-PRIVATE = 20  # first index an estimator may use for its own state
+#: What the vehicle says it is doing (``Estimator.set_flight_state``): FLIGHT_AIRBORNE,
+#: FLIGHT_GROUND or FLIGHT_UNKNOWN (an estimator with a flight-only model then decides
+#: from the data). Estimators without such a model ignore it.
+FLIGHT = 20
+AIR_MODEL = 21  # 1.0 while the estimator runs its in-flight model (reported per sample)
+PRIVATE = 22  # first index an estimator may use for its own state
+FLIGHT_UNKNOWN, FLIGHT_GROUND, FLIGHT_AIRBORNE = -1.0, 0.0, 1.0
 
 # --- counters (float64 slots of the workspace: whole numbers, exact below 2**53) ------
 C_SAMPLES = 0  # samples offered
@@ -122,6 +128,7 @@ F_ACC_REJECTED = 2
 F_MAG_REJECTED = 4
 F_SKIPPED = 8
 F_ACC_UNUSABLE = 16
+F_AIR_MODEL = 32  # the estimator's in-flight model (eskf: rotor drag) was on
 
 _SAT_FRACTION = 0.999
 _ACC_MIN_NORM = 1e-3  # m/s^2: below this the direction of gravity is meaningless
@@ -450,6 +457,8 @@ def make_kernels(step, takes_velocity: bool = False):
         if state[MAG_REJ] > 0.0:
             counters[C_MAG_REJECTED] += 1
             flags |= F_MAG_REJECTED
+        if state[AIR_MODEL] > 0.0:
+            flags |= F_AIR_MODEL
         return flags | F_INITIALISED
 
     def update_one(ws, g, a, m, dt, v, v_age) -> int:

@@ -16,6 +16,7 @@ world frame, batch) lives here and in ``_core`` so that all estimators behave al
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -115,6 +116,11 @@ class BatchResult:
     def skipped(self) -> np.ndarray:
         return (self.flags & _core.F_SKIPPED) != 0
 
+    @property
+    def air_model(self) -> np.ndarray:
+        """Samples on which the estimator ran its in-flight model (eskf: rotor drag)."""
+        return (self.flags & _core.F_AIR_MODEL) != 0
+
 
 class Estimator:
     """Base class: attitude from gyro + accelerometer (+ magnetometer) samples."""
@@ -144,6 +150,7 @@ class Estimator:
         (self._state, self._params_vec, self._common, self._counters,
          self._out) = _core.workspace_views(self._ws)
         self._q0 = None if q0 is None else np.array(q0, dtype=float)
+        self._flight = _core.FLIGHT_UNKNOWN
         _core.prepare_update(type(self)._update_one)
         self._kernel = type(self)._update_one  # bound once: update() is per sample
         self.reset()
@@ -193,6 +200,25 @@ class Estimator:
         self.params = params
         self._common[_core.P_OUT:_core.P_OUT + 4] = self.output_rotation
 
+    def set_flight_state(self, airborne: bool | None) -> None:
+        """What the vehicle says it is doing from the next sample on: True in the air
+        (taking off, flying, landing), False on the ground (disarmed, landed, carried by
+        hand), None when nothing says (the estimator then decides from the data).
+
+        Only estimators with a model that holds in flight alone use it (eskf's rotor
+        drag); it survives ``reset``, since a reboot of the estimator is not a landing.
+        """
+        self._flight = (_core.FLIGHT_UNKNOWN if airborne is None else
+                        _core.FLIGHT_AIRBORNE if airborne else _core.FLIGHT_GROUND)
+        self._state[_core.FLIGHT] = self._flight
+        if airborne is False:  # off from this sample on, not from the next filter step
+            self._state[_core.AIR_MODEL] = 0.0
+
+    @property
+    def air_model(self) -> bool:
+        """Whether the last sample ran the in-flight model (eskf: rotor drag)."""
+        return bool(self._state[_core.AIR_MODEL] > 0.0)
+
     def _pack_params(self, p: CommonParams) -> np.ndarray:
         return np.zeros(1)
 
@@ -213,6 +239,7 @@ class Estimator:
                 raise ValueError(f"q0 must be a finite non-zero quaternion, got {self._q0!r}")
             state[0:4] = Q.multiply(Q.conjugate(self.output_rotation), q)
             state[_core.INIT] = 1.0
+        state[_core.FLIGHT] = self._flight
         self._init_private(state, self.params)
         self._state[:] = state
         self._counters[:] = 0.0
@@ -296,14 +323,19 @@ class Estimator:
 
     def run(self, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None = None,
             dt: float | np.ndarray | None = None, *, vel: np.ndarray | None = None,
-            vel_age: float | np.ndarray | None = None) -> BatchResult:
+            vel_age: float | np.ndarray | None = None,
+            airborne: np.ndarray | None = None) -> BatchResult:
         """Process (N, 3) arrays in a compiled loop, continuing from the current state.
 
         ``dt`` is a scalar, an (N,) array of per-sample steps, or None for ``1/rate_hz``.
         ``vel`` (N, 3) and ``vel_age`` (scalar or (N,), default 0) as in ``update``, NaN
-        rows where no velocity measurement arrives. Gives the same quaternions as calling
-        ``update`` N times.
+        rows where no velocity measurement arrives. ``airborne`` (N,): the vehicle's
+        flight state per sample as in ``set_flight_state`` (1 in the air, 0 on the
+        ground, NaN unknown); the last one stays set after the run. Gives the same
+        quaternions as calling ``update`` (and ``set_flight_state``) N times.
         """
+        if airborne is not None:
+            return self._run_by_flight_state(gyr, acc, mag, dt, vel, vel_age, airborne)
         G_ = np.ascontiguousarray(gyr, dtype=np.float64)
         A_ = np.ascontiguousarray(acc, dtype=np.float64)
         n = G_.shape[0]
@@ -332,6 +364,36 @@ class Estimator:
                                   has_mag, dts, self._counters, q_out, b_out, f_out, V_, ages)
             self._last_flags = int(f_out[-1])
         return BatchResult(q=q_out, bias=b_out, flags=f_out)
+
+    def _run_by_flight_state(self, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None,
+                             dt: float | np.ndarray | None, vel: np.ndarray | None,
+                             vel_age: float | np.ndarray | None,
+                             airborne: np.ndarray) -> BatchResult:
+        """``run`` in pieces of constant flight state (it changes a few times a flight)."""
+        n = np.asarray(gyr).shape[0]
+        state = np.asarray(airborne, dtype=np.float64)
+        if state.shape != (n,):
+            raise ValueError(f"airborne must have shape ({n},), got {state.shape}")
+        code = np.where(np.isnan(state), 2, state != 0.0).astype(np.int8)
+        cuts = [0, *(np.flatnonzero(np.diff(code)) + 1).tolist(), n]
+
+        def piece(x: object, a: int, b: int) -> object:
+            arr = np.asarray(x) if x is not None else None
+            return arr[a:b] if arr is not None and arr.ndim >= 1 and arr.shape[0] == n else x
+
+        parts = []
+        for a, b in itertools.pairwise(cuts):
+            if b <= a:
+                continue
+            self.set_flight_state(None if code[a] == 2 else bool(code[a]))
+            parts.append(self.run(piece(gyr, a, b), piece(acc, a, b), piece(mag, a, b),
+                                  piece(dt, a, b), vel=piece(vel, a, b),
+                                  vel_age=piece(vel_age, a, b)))
+        if not parts:
+            return self.run(gyr, acc, mag, dt, vel=vel, vel_age=vel_age)
+        return BatchResult(q=np.concatenate([p.q for p in parts]),
+                           bias=np.concatenate([p.bias for p in parts]),
+                           flags=np.concatenate([p.flags for p in parts]))
 
     @staticmethod
     def _per_sample(name: str, value: float | np.ndarray, n: int) -> np.ndarray:

@@ -7,8 +7,10 @@
 
 ``simulate`` and the UDP stream produce the same samples for the same seed. On the
 link the board behaves like a flight controller of its ``autopilot`` personality
-(``stm32``, ``px4``, ``ardupilot``): it answers SET_MESSAGE_INTERVAL and parameter
-requests and sends its own onboard attitude.
+(``stm32``, ``px4``, ``ardupilot``): it answers SET_MESSAGE_INTERVAL, REQUEST_MESSAGE
+and parameter requests, sends its own onboard attitude and tells its flight state
+(HEARTBEAT armed flag, EXTENDED_SYS_STATE on request; ``Recording.armed`` and
+``landed_state`` hold the truth of it).
 """
 
 from __future__ import annotations

@@ -57,7 +57,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--target", action="append", required=True, metavar="udp:HOST:PORT",
                    help="where to send (repeat for several targets)")
     p.add_argument("--profile", default="flight",
-                   help=f"motion: {', '.join(PROFILE_NAMES)} or file:PATH (CSV time_s,qw,qx,qy,qz)")
+                   help=f"motion: {', '.join(PROFILE_NAMES)} or file:PATH (CSV time_s,qw,qx,qy,"
+                        "qz); handheld_flight: carried by hand, then two flights (104 s)")
     p.add_argument("--rate", type=float, default=1000.0, help="IMU rate [Hz] (default 1000)")
     p.add_argument("--duration", type=float, default=0.0,
                    help="seconds of stream; 0 runs until interrupted (default)")
@@ -69,6 +70,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--imu-message", default=None, metavar="NAME",
                    help=f"IMU stream at start-up ({', '.join(IMU_MESSAGES)}; default: the "
                         "autopilot's own)")
+    p.add_argument("--no-flight-state", dest="flight_state", action="store_false",
+                   help="a bare board that does not tell its flight state: no armed flag in "
+                        "HEARTBEAT, EXTENDED_SYS_STATE refused (default: armed flag, "
+                        "EXTENDED_SYS_STATE on request, as PX4 and ArduPilot)")
     p.add_argument("--sysid", type=int, default=1)
     p.add_argument("--truth-rate", type=float, default=None,
                    help="HIL_STATE_QUATERNION rate [Hz] (default: IMU rate, at most 1000)")
@@ -76,7 +81,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--clock-jitter-us", type=float, default=0.0)
     p.add_argument("--stats-json", type=Path, help="write the sent/fault counts here at exit")
     p.add_argument("--rotor-drag", type=float, default=DEFAULT_DRAG_PER_S, metavar="PER_S",
-                   help="rotor drag of the `flight` quadrotor [1/s] (default "
+                   help="rotor drag of the `flight` and `handheld_flight` quadrotor [1/s] (default "
                         f"{DEFAULT_DRAG_PER_S}; real quads 0.3-0.6)")
     p.add_argument("--home", default=None, metavar="LAT,LON[,ALT]",
                    help="take-off point, WGS-84 degrees and metres AMSL (default PX4 SITL's "
@@ -130,7 +135,7 @@ def config_from_args(args: argparse.Namespace) -> EmulatorConfig:
         profile=args.profile, rate_hz=args.rate,
         duration_s=args.duration if args.duration > 0 else None, seed=args.seed,
         sysid=args.sysid, autopilot=args.autopilot, imu_message=args.imu_message,
-        fast=args.fast, faults=faults,
+        fast=args.fast, faults=faults, flight_state=args.flight_state,
         truth_rate_hz=args.truth_rate, clock_drift_ppm=args.clock_drift_ppm,
         clock_jitter_us=args.clock_jitter_us, rotor_drag_per_s=args.rotor_drag, gps=gps,
         environment=parse_home(args.home))

@@ -7,8 +7,17 @@
   no stream name; ArduPilot: no ``ap_message`` for the id), the seeds' board
   MAV_RESULT_DENIED. HEARTBEAT's rate cannot be set (FAILED). PX4 also refuses the
   unsupported param3/param4/param7 (response target) options.
+  EXTENDED_SYS_STATE starts off; asked with 0 µs it goes at 1 Hz (a board without a
+  flight state has no such stream: refused like any unknown message).
 * MAV_CMD_GET_MESSAGE_INTERVAL (510): MESSAGE_INTERVAL (-1 stopped, 0 not available),
   then COMMAND_ACK.
+* MAV_CMD_REQUEST_MESSAGE (512), param1 message id: HEARTBEAT and EXTENDED_SYS_STATE
+  are made at once with the flight state of the stream's current instant and sent with
+  an ACCEPTED COMMAND_ACK (PX4: the message, then the ACK; ArduPilot queues the message,
+  so its ACK goes first); any other stream the board has sends its next sample once
+  (ACCEPTED now, the message with the next sample / reading / fix); a message it has
+  no stream of is refused with the personality's ``request_refused_result`` (PX4 and
+  the seeds' board DENIED, ArduPilot FAILED).
 * any other command: COMMAND_ACK MAV_RESULT_UNSUPPORTED.
 * PARAM_REQUEST_READ / PARAM_REQUEST_LIST: the declination parameter (PX4
   ``EKF2_MAG_DECL`` in degrees, ArduPilot ``COMPASS_DEC`` in radians, both REAL32) from
@@ -23,6 +32,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 
 os.environ["MAVLINK20"] = "1"
@@ -41,6 +51,8 @@ class Requests:
     interval_accepted: int = 0
     interval_refused: int = 0
     other_commands: int = 0
+    message_accepted: int = 0  # MAV_CMD_REQUEST_MESSAGE
+    message_refused: int = 0
     param_reads: int = 0
     ignored: int = 0  # for another system/component, or not understood
 
@@ -49,9 +61,15 @@ class Requests:
 
 
 class CommandHandler:
+    """Replies to what a listener sends. ``now_message(kind)`` makes a message of that
+    kind for the current instant of the stream (None if it cannot: then a requested
+    message goes out with the stream's next candidate)."""
+
     def __init__(self, who: Personality, streams: StreamTable, sysid: int, compid: int,
-                 declination_deg: float, counts: Requests):
+                 declination_deg: float, counts: Requests,
+                 now_message: Callable[[str], object | None] | None = None):
         self.who = who
+        self.now_message = now_message
         self.streams = streams
         self.sysid, self.compid = sysid, compid
         self.counts = counts
@@ -105,6 +123,8 @@ class CommandHandler:
                 us = round(interval * 1e6)
             return [mavlink.MAVLink_message_interval_message(int(msg.param1), us),
                     self._ack(msg, mavlink.MAV_RESULT_ACCEPTED)]
+        if msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE:
+            return self._request_message(msg)
         self.counts.other_commands += 1
         return [self._ack(msg, mavlink.MAV_RESULT_UNSUPPORTED)]
 
@@ -136,6 +156,23 @@ class CommandHandler:
                  "sample" if interval is NATURAL else
                  ("(stopped)" if interval == OFF else f"{interval * 1e3:g} ms"))
         return mavlink.MAV_RESULT_ACCEPTED
+
+    def _request_message(self, msg) -> list:
+        who = self.who
+        kind = _message_name(msg.param1)
+        made = self.now_message(kind) if kind is not None and self.now_message else None
+        if made is None and kind is not None and self.streams.knows(kind):
+            self.streams.request_once(kind)  # goes out with the next candidate
+        elif made is None:
+            log.info("%s autopilot: no %s stream, REQUEST_MESSAGE refused", who.name,
+                     kind or f"message id {msg.param1:g}")
+            self.counts.message_refused += 1
+            return [self._ack(msg, who.request_refused_result)]
+        self.counts.message_accepted += 1
+        ack = self._ack(msg, mavlink.MAV_RESULT_ACCEPTED)
+        if made is None:
+            return [ack]
+        return [ack, made] if who.ack_before_requested else [made, ack]
 
     def _params(self, msg) -> list:
         names = list(self.params)

@@ -36,6 +36,9 @@ class EmulatorConfig:
     autopilot: str = "stm32"  # personality on the link: stm32, px4, ardupilot
     imu_message: str | None = None  # None: the personality's (RAW_IMU, HIGHRES_IMU, RAW_IMU)
     fast: bool = False
+    #: The board tells its flight state (HEARTBEAT armed flag, EXTENDED_SYS_STATE on
+    #: request); False: a bare board that tells neither.
+    flight_state: bool = True
     faults: FaultConfig = field(default_factory=FaultConfig)
     truth_rate_hz: float | None = None  # None: IMU rate, divided down to <= 1 kHz
     baro_rate_hz: float = BARO_RATE_HZ

@@ -16,6 +16,7 @@ import socket
 import time
 from concurrent.futures import ThreadPoolExecutor
 
+import numpy as np
 from fastcrc.crc16 import mcrf4xx
 
 from .commands import CommandHandler
@@ -88,9 +89,17 @@ class Emulator:
         firmware = Firmware(cfg, (mpu.gyro_lsb_per_dps, mpu.accel_lsb_per_g),
                             source.hmc.config.lsb_per_gauss)
         self.firmware = firmware
+        now_s = [0.0]  # stream time of the last packet sent: the board's "now"
+
+        def now_message(kind: str) -> mavlink.MAVLink_message | None:
+            """A HEARTBEAT / EXTENDED_SYS_STATE for MAV_CMD_REQUEST_MESSAGE, with the
+            flight state of the instant the stream has reached."""
+            armed, landed = source.profile.flight_state(np.array([now_s[0]]))
+            return firmware.message_now(kind, bool(armed[0]), int(landed[0]))
+
         handler = CommandHandler(firmware.personality, firmware.streams, cfg.sysid, cfg.compid,
                                  cfg.environment.magnetic_declination_deg,
-                                 self.stats.requests)
+                                 self.stats.requests, now_message)
         sequencer = Sequencer()
 
         def on_datagram(data: bytes, addr: tuple) -> None:
@@ -153,6 +162,7 @@ class Emulator:
                         if wait > 0.0:
                             await asyncio.sleep(wait)
                     self.stats.count_message(packet.kind)
+                    now_s[0] = packet.due_s
                     send(link.apply(sequencer.stamp(packet.data)))
                 self.stats.imu_samples += n_samples
                 self.stats.stream_time_s = t_end

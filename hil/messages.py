@@ -2,8 +2,13 @@
 
 What goes out (system id from the config, component MAV_COMP_ID_AUTOPILOT1):
 
-* HEARTBEAT at 1 Hz: a quadrotor, HIL enabled, active, with the personality's
-  MAV_AUTOPILOT (``hil.personality``);
+* HEARTBEAT at 1 Hz: a quadrotor, HIL enabled, with the personality's MAV_AUTOPILOT
+  (``hil.personality``) and its flight state at that instant: MAV_MODE_FLAG_SAFETY_ARMED
+  in base_mode while armed, system_status ACTIVE or STANDBY as the personality says it
+  (armed / disarmed; ArduPilot: in the air / on the ground); a bare board,
+  ``flight_state=False``: never the armed flag, always ACTIVE;
+* EXTENDED_SYS_STATE (vtol_state undefined, landed_state) when asked for, at the asked
+  interval (at most one per IMU sample), with the flight state of that sample;
 * the IMU stream(s) of the personality at their current rates. ``stm32``: RAW_IMU with
   every sample, the MPU6050 / HMC5883L register counts in the chips' axes (RFU) and
   ``temperature`` from TEMP_OUT in cdegC (the magnetometer fields repeat the last
@@ -41,14 +46,15 @@ from estimators import quat
 from .config import EmulatorConfig
 from .environment import G
 from .onboard import make_onboard
-from .personality import NATURAL, personality
+from .personality import NATURAL, ON_REQUEST_STREAMS, personality
 from .recording import Recording
 from .source import frd_from_chip
 from .streams import StreamTable
 
 # Order of packets due at the same instant: a barometer reading goes before the IMU
 # sample, so that HIGHRES_IMU can already carry it.
-ORDER_HEARTBEAT, ORDER_BARO, ORDER_IMU, ORDER_ATTITUDE, ORDER_TRUTH, ORDER_GPS = range(6)
+ORDER_HEARTBEAT, ORDER_BARO, ORDER_IMU, ORDER_ATTITUDE, ORDER_TRUTH, ORDER_GPS, ORDER_STATE = (
+    range(7))
 BARO_READING = "baro reading"  # internal item: a reading that may or may not go out
 GPS_MESSAGES = ("GPS_RAW_INT", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED")
 UINT16_UNKNOWN = 65535
@@ -82,7 +88,7 @@ class Firmware:
         self.gyro_lsb_per_dps, self.accel_lsb_per_g = mpu_lsb
         self.mag_lsb_per_gauss = mag_lsb
         self.streams = streams or StreamTable(self.personality, config.imu_message,
-                                              1.0 / config.imu_rate_hz)
+                                              1.0 / config.imu_rate_hz, config.flight_state)
         self.onboard = make_onboard(config.autopilot, config.imu_rate_hz, self.gyro_lsb_per_dps,
                                     config.environment.magnetic_declination_deg)
         self._next_heartbeat = 0
@@ -96,7 +102,10 @@ class Firmware:
         items: list[tuple[float, int, str, int]] = []
         period = 1.0 / self.config.heartbeat_hz
         while self._next_heartbeat * period < t_end:
-            items.append((self._next_heartbeat * period, ORDER_HEARTBEAT, "HEARTBEAT", 0))
+            t_hb = self._next_heartbeat * period
+            # the flight state of the newest sample at the heartbeat's instant
+            k = int(np.clip(np.searchsorted(rec.t_s, t_hb, side="right") - 1, 0, len(rec) - 1))
+            items.append((t_hb, ORDER_HEARTBEAT, "HEARTBEAT", k))
             self._next_heartbeat += 1
         # Every barometer reading reaches the firmware (HIGHRES_IMU carries the latest);
         # SCALED_PRESSURE goes out when its stream is due.
@@ -104,6 +113,7 @@ class Firmware:
         imu_kinds = streams.active(self.personality.imu_messages)
         att_kinds = streams.active(self.personality.attitude_messages)
         truth_natural = streams.interval("HIL_STATE_QUATERNION") is NATURAL
+        state_kinds = streams.active(ON_REQUEST_STREAMS)
         mag_flags: dict[tuple[str, int], bool] = {}
         for k, (t, truth, mag) in enumerate(zip(rec.t_s.tolist(), rec.truth_on_wire.tolist(),
                                                 rec.mag_updated.tolist(), strict=True)):
@@ -117,15 +127,19 @@ class Firmware:
                          if streams.due(kind, t))
             if truth if truth_natural else streams.due("HIL_STATE_QUATERNION", t):
                 items.append((t, ORDER_TRUTH, "HIL_STATE_QUATERNION", k))
+            items.extend((t, ORDER_STATE, kind, k) for kind in state_kinds
+                         if streams.due(kind, t))
         for g, t in enumerate(rec.gps_sent_t_s.tolist()):
             items.extend((t, ORDER_GPS, kind, g) for kind in GPS_MESSAGES if streams.due(kind, t))
         items.sort(key=lambda i: (i[0], i[1]))
         q, rates = self.onboard.run(rec)
+        armed, landed = rec.armed.tolist(), rec.landed_state.tolist()
         build = {
             **self._gps_builders(rec, q),
             **{kind: self._imu_builder(rec, kind, mag_flags, rates) for kind in imu_kinds},
             **self._attitude_builders(rec, q, rates),
-            "HEARTBEAT": lambda _: self._heartbeat(),
+            "HEARTBEAT": lambda k: self.heartbeat(bool(armed[k]), landed[k]),
+            "EXTENDED_SYS_STATE": lambda k: self.extended_sys_state(landed[k]),
             BARO_READING: self._scaled_pressure_builder(rec),
             "HIL_STATE_QUATERNION": self._truth_builder(rec),
         }
@@ -151,11 +165,36 @@ class Firmware:
         (the link stamps the shared sequence number when sending)."""
         return bytes(msg.pack(self._reply_mav))
 
-    def _heartbeat(self) -> mavlink.MAVLink_message:
+    def heartbeat(self, armed: bool, landed_state: int) -> mavlink.MAVLink_message:
+        """HEARTBEAT for the board's flight state (a bare board: never armed, active)."""
+        base_mode = mavlink.MAV_MODE_FLAG_HIL_ENABLED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        status = mavlink.MAV_STATE_ACTIVE
+        if self.config.flight_state:
+            if armed:
+                base_mode |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+            standby = (landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
+                       if self.personality.status_follows_landed else not armed)
+            if standby:
+                status = mavlink.MAV_STATE_STANDBY
         return mavlink.MAVLink_heartbeat_message(
             type=mavlink.MAV_TYPE_QUADROTOR, autopilot=self.personality.autopilot,
-            base_mode=mavlink.MAV_MODE_FLAG_HIL_ENABLED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-            custom_mode=0, system_status=mavlink.MAV_STATE_ACTIVE, mavlink_version=3)
+            base_mode=base_mode, custom_mode=0, system_status=status, mavlink_version=3)
+
+    @staticmethod
+    def extended_sys_state(landed_state: int) -> mavlink.MAVLink_message:
+        return mavlink.MAVLink_extended_sys_state_message(
+            vtol_state=mavlink.MAV_VTOL_STATE_UNDEFINED, landed_state=int(landed_state))
+
+    def message_now(self, kind: str, armed: bool, landed_state: int
+                    ) -> mavlink.MAVLink_message | None:
+        """A state message (HEARTBEAT, EXTENDED_SYS_STATE) for a flight state, made on
+        request (MAV_CMD_REQUEST_MESSAGE); None for any other kind, or EXTENDED_SYS_STATE
+        on a bare board."""
+        if kind == "HEARTBEAT":
+            return self.heartbeat(armed, landed_state)
+        if kind == "EXTENDED_SYS_STATE" and self.config.flight_state:
+            return self.extended_sys_state(landed_state)
+        return None
 
     # Each builder converts a whole chunk with numpy once, then makes messages by index.
 

@@ -10,6 +10,14 @@ Every profile is built from smooth analytic pieces, so its derivatives are exact
 ``flight`` is different: a quadrotor's dynamics (``hil.multirotor``), where the attitude
 follows from the thrust the planned acceleration needs. The older Euler-angle flight, whose
 attitude and translation are laid out independently, lives on as ``gentle``.
+``handheld_flight`` joins the two: a vehicle carried by hand, set down, then flown
+twice with the quadrotor's dynamics (``HandheldThenFlight``).
+
+Each profile also says its flight state (``Profile.flight_state``: armed, and
+MAV_LANDED_STATE), what a flight controller would report. The Euler-angle profiles move
+the body kinematically, as a hand does (no thrust: the accelerometer sees gravity plus
+the motion's own acceleration), so they are never armed and always ON_GROUND; the
+multirotor flights derive theirs from their flight plan (``hil.multirotor``).
 
 Integrating the body rates therefore reproduces the attitude (tests check it).
 Specific force in the body frame is ``R^T (a_ned - g_ned)``: level and at rest the
@@ -34,11 +42,17 @@ import numpy as np
 
 from estimators import quat
 
-from .multirotor import DEFAULT_DRAG_PER_S
+from .multirotor import (
+    DEFAULT_DRAG_PER_S,
+    DISARM_AFTER_TOUCHDOWN_S,
+    MultirotorProfile,
+    bench_flights,
+)
 from .multirotor import flight as multirotor_flight
 from .truth import Profile, Truth
 
-PROFILE_NAMES = ("static", "tilt", "flight", "gentle", "aggressive", "calibration")
+PROFILE_NAMES = ("static", "tilt", "flight", "gentle", "aggressive", "calibration",
+                 "handheld_flight")
 TILT_ROLL_DEG = 15.9  # the seed paper's static test
 TILT_PITCH_DEG = 9.2
 
@@ -193,6 +207,8 @@ def gentle(duration_s: float) -> Profile:
     Not a multirotor's dynamics: the attitude is laid out on its own and the translation
     is only a gentle repositioning (the accelerometer sees mostly gravity). Kept for
     what it was made for, an easy hover-and-manoeuvre case; ``flight`` is the real one.
+    Kinematically it is a body moved by hand (no thrust, no rotor drag), and its flight
+    state says so: disarmed, ON_GROUND, whatever its height.
 
     The first 5 s the vehicle stands still on the ground (boot and arming, when a real
     board's estimator learns its gyro bias). Each 24 s cycle: roll and pitch manoeuvres
@@ -230,7 +246,9 @@ def aggressive(duration_s: float) -> Profile:
     """Flips: full pitch loops through +90° and -90°, roll rolls, and a fast yaw spin.
 
     One loop takes 1 s (peak rate ≈ 675 °/s, inside the ±2000 °/s gyro range); each
-    12 s cycle returns to level.
+    12 s cycle returns to level. A tumble of the board in place (the accelerometer reads
+    gravity through the loops, which a multirotor's thrust would not): a hand-held
+    motion, disarmed and ON_GROUND.
     """
     roll, pitch, yaw = Channel(), Channel(), Channel()
     down = Channel().ramp(0.5, 2.0, -5.0)
@@ -279,6 +297,140 @@ def calibration_duration_s() -> float:
     """Time to go through every pose of the `calibration` profile."""
     n = len(CALIBRATION_POSES_DEG)
     return n * CALIBRATION_HOLD_S + (n - 1) * CALIBRATION_MOVE_S
+
+
+# ---- handheld_flight ------------------------------------------------------------------
+
+#: The hand lifts the vehicle this much off the bench [m] while turning it.
+HANDHELD_LIFT_M = 0.25
+#: Largest jump of any truth quantity where the hand-held part hands over to the flight.
+JOIN_TOLERANCE = 1e-6
+
+
+def handheld() -> EulerProfile:
+    """The hand-held part of ``handheld_flight``: 12.5 s on the bench by hand.
+
+    Still for 1 s, lifted 25 cm, rolled 24° and pitched -19° together (30° tilt), moved
+    30 cm north and 20 cm west, turned 90° right, rocked (8° roll at 0.8 Hz, three
+    times), pitched up 15°, turned 60° back and moved back, then set down level where it
+    started, facing 30°. The hand's accelerations stay below 0.7 m/s², so the
+    accelerometer reads gravity plus a little.
+    """
+    roll, pitch, yaw = Channel(), Channel(), Channel()
+    north, east, down = Channel(), Channel(), Channel()
+    down.ramp(1.0, 1.5, -HANDHELD_LIFT_M)
+    roll.ramp(2.0, 1.2, _deg(24)).ramp(3.6, 1.2, _deg(-24))
+    pitch.ramp(2.4, 1.2, _deg(-19)).ramp(3.8, 1.2, _deg(19))
+    north.ramp(2.5, 2.0, 0.3)
+    east.ramp(3.0, 2.0, -0.2)
+    yaw.ramp(6.0, 2.0, _deg(90))
+    roll.wobbles.append(Wobble(_deg(8.0), 0.8, 6.5, 3))
+    pitch.ramp(8.0, 1.0, _deg(15)).ramp(9.2, 1.0, _deg(-15))
+    yaw.ramp(9.0, 1.5, _deg(-60))
+    north.ramp(8.5, 2.0, -0.3)
+    east.ramp(9.0, 2.0, 0.2)
+    down.ramp(11.0, 1.5, HANDHELD_LIFT_M)  # set down on the bench
+    return EulerProfile("handheld", roll, pitch, yaw, north, east, down)
+
+
+def channel_end(ch: Channel) -> float:
+    """When a channel's last ramp or wobble is over (from then on it is constant)."""
+    ends = [r.start + r.duration for r in ch.ramps]
+    ends += [w.start + w.cycles / w.frequency_hz for w in ch.wobbles]
+    return max(ends, default=0.0)
+
+
+class HandheldThenFlight(Profile):
+    """A hand-held motion until ``switch_s``, then a multirotor's flight plan.
+
+    The hand-held part ends at rest, level, on the ground (altitude 0), and the flight
+    plan starts there at rest with the same heading, so attitude, rates, specific force,
+    velocity and position are continuous at the switch (velocity and acceleration are
+    zero there on both sides; the construction checks it). Flight state: the hand-held
+    part is disarmed on the ground, the flight plan's is its own
+    (``MultirotorProfile.flight_state``).
+    """
+
+    def __init__(self, name: str, hand: EulerProfile, flight: MultirotorProfile,
+                 switch_s: float):
+        self.name = name
+        self.hand, self.flight, self.switch_s = hand, flight, switch_s
+        self.flights = flight.flights
+        self.drag_per_s = flight.drag_per_s
+        if self.flights and self.flights[0].liftoff < switch_s:
+            raise ValueError("the flight plan must not lift off before the hand lets go")
+        self._check_join()
+
+    def _check_join(self) -> None:
+        """ValueError unless the two parts meet: a jump in attitude, rate, velocity or
+        specific force would be a physical impossibility every estimator trips over."""
+        at = np.array([self.switch_s])
+        a, b = self.hand.truth(at), self.flight.truth(at)
+        dq = min(np.abs(a.q - b.q).max(), np.abs(a.q + b.q).max())
+        gaps = {"attitude": dq, "rates": np.abs(a.rates - b.rates).max(),
+                "velocity": np.abs(a.velocity_ned - b.velocity_ned).max(),
+                "position": np.abs(a.position_ned - b.position_ned).max(),
+                "specific force": np.abs(a.specific_force() - b.specific_force()).max()}
+        bad = {k: float(v) for k, v in gaps.items() if not v < JOIN_TOLERANCE}
+        if bad:
+            raise ValueError(f"hand-held and flight parts do not join at {self.switch_s:g} s: "
+                             f"{bad}")
+
+    @property
+    def end_s(self) -> float:
+        """When the last flight is over: landed and disarmed."""
+        return self.flights[-1].touchdown + DISARM_AFTER_TOUCHDOWN_S
+
+    def truth(self, t: np.ndarray) -> Truth:
+        t = np.asarray(t, dtype=float)
+        by_hand = t < self.switch_s
+        if by_hand.all():
+            return self.hand.truth(t)
+        if not by_hand.any():
+            return self.flight.truth(t)
+        a, b = self.hand.truth(t[by_hand]), self.flight.truth(t[~by_hand])
+        merged = {}
+        for name in ("q", "rates", "accel_ned", "velocity_ned", "position_ned"):
+            out = np.empty((len(t), *getattr(a, name).shape[1:]))
+            out[by_hand], out[~by_hand] = getattr(a, name), getattr(b, name)
+            merged[name] = out
+        return Truth(t=t, **merged)
+
+    def flight_state(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Disarmed and ON_GROUND in the hand (however high it is lifted), then the
+        flight plan's state."""
+        t = np.asarray(t, dtype=float)
+        armed, landed = self.flight.flight_state(t)
+        hand_armed, hand_landed = self.hand.flight_state(t)
+        by_hand = t < self.switch_s
+        return (np.where(by_hand, hand_armed, armed),
+                np.where(by_hand, hand_landed, landed).astype(np.uint8))
+
+
+def handheld_flight(drag_per_s: float = DEFAULT_DRAG_PER_S) -> HandheldThenFlight:
+    """Carried by hand on the bench (disarmed), set down, then two multirotor flights
+    with a rest on the ground between them (``hil.multirotor.bench_flights``).
+
+    A companion must tell a device in the hand from a vehicle that flies, and a landed
+    vehicle from one in the air, on the same board in one session; this profile has
+    all of it. Times [s] (``flights`` has the exact ones):
+
+    * 0-12.5 in the hand (``handheld``), disarmed, ON_GROUND although lifted 25 cm;
+      set down level facing 30° at 12.5, still on the ground until lift-off;
+    * armed at 15.0, TAKEOFF 16.5-21.8 (to 8 m), IN_AIR, LANDING 48.2-54.8,
+      touchdown 54.8, disarmed at 56.8;
+    * 10 s on the ground between the flights, disarmed from 56.8 to 63.3 (not armed
+      idle: PX4 disarms 2 s after landing, ``DISARM_AFTER_TOUCHDOWN_S``), armed again
+      at 63.3;
+    * TAKEOFF 64.8-69.1 (to 6 m), IN_AIR, LANDING 96.5-101.8, touchdown 101.8,
+      disarmed at 103.8 (``end_s``); on the ground, disarmed, after that whatever
+      the duration.
+    """
+    hand = handheld()
+    switch = max(channel_end(c) for c in (*hand.euler, *hand.position))
+    yaw0 = float(hand.euler[2].evaluate(np.array([switch]))[0][0])
+    return HandheldThenFlight("handheld_flight", hand, bench_flights(switch, yaw0, drag_per_s),
+                              switch)
 
 
 class FileProfile(Profile):
@@ -340,13 +492,15 @@ def load_attitude_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 def make_profile(name: str, duration_s: float = 60.0,
                  drag_per_s: float = DEFAULT_DRAG_PER_S) -> Profile:
     """A profile by name (``static``, ``tilt``, ``flight``, ``gentle``, ``aggressive``,
-    ``calibration``, ``file:PATH``); ``drag_per_s`` is the rotor drag of ``flight``."""
+    ``calibration``, ``handheld_flight``, ``file:PATH``); ``drag_per_s`` is the rotor
+    drag of ``flight`` and ``handheld_flight``."""
     if name.startswith("file:"):
         return FileProfile(name[len("file:"):])
     builders = {"static": lambda: static(), "tilt": lambda: tilt(),
                 "flight": lambda: multirotor_flight(duration_s, drag_per_s),
                 "gentle": lambda: gentle(duration_s), "aggressive": lambda: aggressive(duration_s),
-                "calibration": calibration}
+                "calibration": calibration,
+                "handheld_flight": lambda: handheld_flight(drag_per_s)}
     if name not in builders:
         raise ValueError(f"unknown profile {name!r}; valid: {', '.join(PROFILE_NAMES)}, file:PATH")
     return builders[name]()

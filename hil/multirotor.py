@@ -25,20 +25,33 @@ its body x/y components are exactly ``-mu`` times the body velocity. At constant
 velocity the vehicle tilts into the wind of its own motion (tan tilt = mu |v_h| / g)
 and the accelerometer reads gravity in that tilted body, as on a real quadrotor.
 ``mu`` (``drag_per_s``, 1/s) is 0.3-0.6 on real quads; PX4's SIH model uses 1.0.
+
+The flight state (armed, MAV_LANDED_STATE) comes from the same plan: a flight begins
+where a vertical move leaves the ground (altitude 0) and ends where one reaches it
+again. ``TAKEOFF`` is that first climb, ``LANDING`` the last descent, ``IN_AIR`` the
+rest; the vehicle arms ``ARM_BEFORE_LIFTOFF_S`` before lift-off and disarms
+``DISARM_AFTER_TOUCHDOWN_S`` after touchdown (PX4's COM_DISARM_LAND default), unless the
+next flight arms it first.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .environment import GRAVITY_NED
 from .trajectory import Axis, Circle, Move
-from .truth import Profile, Truth
+from .truth import LANDED_IN_AIR, LANDED_LANDING, LANDED_ON_GROUND, LANDED_TAKEOFF, Profile, Truth
 
 DEFAULT_DRAG_PER_S = 0.4
+#: Armed this long before lift-off (the pilot arms, the motors spin up, it takes off).
+ARM_BEFORE_LIFTOFF_S = 1.5
+#: Disarmed this long after touchdown (PX4's COM_DISARM_LAND default).
+DISARM_AFTER_TOUCHDOWN_S = 2.0
+#: Altitude [m] below which the plan counts as on the ground (the plans sum to exact 0).
+GROUND_TOLERANCE_M = 1e-6
 
 
 @dataclass
@@ -119,12 +132,69 @@ class TrackBuilder:
         return self
 
 
+@dataclass(frozen=True)
+class Airborne:
+    """One flight of a plan [s]: the climb that leaves the ground runs from ``liftoff``
+    to ``climbed`` (vertical speed back to 0 at its altitude), the descent that reaches
+    the ground from ``descent`` to ``touchdown`` (inf: still flying when the plan ends)."""
+
+    liftoff: float
+    climbed: float
+    descent: float
+    touchdown: float
+
+
+def airborne_spans(moves: list[Move], initial_down: float = 0.0) -> list[Airborne]:
+    """The flights of a sequence of vertical (down-axis) moves in absolute time, the
+    ground being at down = 0; ValueError if moves overlap or go below the ground."""
+    flights: list[Airborne] = []
+    down = initial_down
+    lifted: tuple[float, float] | None = None
+    if down < -GROUND_TOLERANCE_M:
+        lifted = (-math.inf, -math.inf)  # the plan starts in the air
+    elif down > GROUND_TOLERANCE_M:
+        raise ValueError("the plan starts below the ground")
+    last_end = -math.inf
+    for m in sorted(moves, key=lambda m: m.start):
+        if m.start < last_end - 1e-9:
+            raise ValueError("vertical moves overlap: the flight state needs them in turn")
+        last_end = m.end
+        after = down + m.delta
+        if after > GROUND_TOLERANCE_M:
+            raise ValueError(f"a vertical move at {m.start:g} s goes below the ground")
+        grounded, lands = down > -GROUND_TOLERANCE_M, after > -GROUND_TOLERANCE_M
+        if grounded and not lands:
+            lifted = (m.start, m.end)
+        elif lands and not grounded and lifted is not None:
+            flights.append(Airborne(lifted[0], lifted[1], m.start, m.end))
+            lifted = None
+        down = after
+    if lifted is not None:
+        flights.append(Airborne(lifted[0], lifted[1], math.inf, math.inf))
+    return flights
+
+
+def flight_state_of(flights: list[Airborne], t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(armed, landed_state) at times t for a list of flights (on the ground outside)."""
+    t = np.asarray(t, dtype=float)
+    landed = np.full(t.shape, LANDED_ON_GROUND, dtype=np.uint8)
+    armed = np.zeros(t.shape, dtype=bool)
+    for f in flights:
+        landed[(t >= f.liftoff) & (t < f.climbed)] = LANDED_TAKEOFF
+        landed[(t >= f.climbed) & (t < f.descent)] = LANDED_IN_AIR
+        landed[(t >= f.descent) & (t < f.touchdown)] = LANDED_LANDING
+        armed |= (t >= f.liftoff - ARM_BEFORE_LIFTOFF_S) & (t < f.touchdown
+                                                             + DISARM_AFTER_TOUCHDOWN_S)
+    return armed, landed
+
+
 class MultirotorProfile(Profile):
     """Attitude and specific force of a quadrotor following a flight plan.
 
     The plan is a prologue (ground, take-off), a cycle repeated ``cycles`` times from
     ``cycle_start`` (it starts and ends hovering at the same place, at rest, with the
-    same heading modulo 360°) and an epilogue (landing) after the cycles.
+    same heading modulo 360°) and an epilogue (landing) after the cycles. A plan laid
+    out whole has no cycles (``cycles=0``, an empty cycle and epilogue).
     """
 
     def __init__(self, name: str, prologue: Track, cycle: Track, cycle_start: float,
@@ -139,6 +209,20 @@ class MultirotorProfile(Profile):
         self.cycles = cycles
         self.land_start = cycle_start + cycles * cycle_length
         self.drag_per_s = drag_per_s
+        self.flights = airborne_spans(self._vertical_moves(), prologue.down.initial)
+
+    def _vertical_moves(self) -> list[Move]:
+        """Every down-axis move of the plan in absolute time (cycles unrolled)."""
+        moves = list(self.prologue.down.moves)
+        for k in range(self.cycles):
+            offset = self.cycle_start + k * self.cycle_length
+            moves += [replace(m, start=m.start + offset) for m in self.cycle.down.moves]
+        moves += [replace(m, start=m.start + self.land_start) for m in self.epilogue.down.moves]
+        return moves
+
+    def flight_state(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Armed and MAV_LANDED_STATE from the plan's flights (``self.flights``)."""
+        return flight_state_of(self.flights, t)
 
     def plan(self, t: np.ndarray) -> tuple[np.ndarray, ...]:
         """Position, velocity, acceleration, jerk (N, 3), yaw and yaw rate (N,)."""
@@ -244,3 +328,46 @@ def flight(duration_s: float, drag_per_s: float = DEFAULT_DRAG_PER_S) -> Multiro
     cycles = max(1, math.floor((duration_s - pro.t - land.t) / cycle_length))
     return MultirotorProfile("flight", pro.track, cyc.track, pro.t, cycle_length, cycles,
                              land.track, drag_per_s)
+
+
+# ---- the flights of `handheld_flight` ------------------------------------------------
+
+BENCH_GROUND_S = 4.0  # set down level, then still on the ground until lift-off (arming)
+BENCH_REST_S = 10.0  # on the ground between the two flights
+
+
+def bench_flights(start_s: float, yaw0: float,
+                  drag_per_s: float = DEFAULT_DRAG_PER_S) -> MultirotorProfile:
+    """Two short flights from where a hand set the vehicle down at ``start_s``, at rest,
+    level, facing ``yaw0`` [rad] (the plan starts exactly there, so the attitude joins).
+
+    After ``BENCH_GROUND_S`` on the ground: take-off to 8 m, 25 m north at 5 m/s
+    (4.5 m/s²), a 90° yaw turn, 20 m east (4 m/s²), home along the diagonal at 5 m/s
+    (5 m/s²) while turning back, landing. ``BENCH_REST_S`` on the ground (landed,
+    disarmed after 2 s, armed again 1.5 s before lift-off), then take-off to 6 m, one lap
+    of a 6 m circle at 5 m/s (4.2 m/s² centripetal, nose along the track), a 180° yaw
+    turn, 20 m out and back (4.5 and 5 m/s²), landing at home. Then on the ground for
+    ever.
+    """
+    b = TrackBuilder(start_s)
+    b.track.yaw.initial = yaw0
+    b.hover(BENCH_GROUND_S)
+    # first flight
+    b.leg(0.0, 0.0, -8.0, speed=2.0, accel=2.0).hover(1.0)
+    b.leg(25.0, 0.0, speed=5.0, accel=4.5).hover(1.0)
+    b.yaw_turn(90.0, 90.0, 180.0).hover(0.5)
+    b.leg(0.0, 20.0, speed=5.0, accel=4.0).hover(1.0)
+    b.yaw_turn(-90.0, 45.0, 90.0, after=1.0)
+    b.leg(-25.0, -20.0, speed=5.0, accel=5.0).hover(1.5)
+    b.leg(0.0, 0.0, 8.0, speed=1.5, accel=1.5)
+    b.hover(BENCH_REST_S)
+    # second flight
+    b.leg(0.0, 0.0, -6.0, speed=2.0, accel=2.0).hover(1.0)
+    heading = float(b.track.yaw.evaluate(np.array([b.t]))[0][0])
+    b.circle(6.0, 5.0, 1, 3.0, theta0=heading - 0.5 * math.pi).hover(1.0)
+    b.yaw_turn(180.0, 120.0, 240.0).hover(0.5)
+    b.leg(-20.0, 0.0, speed=5.0, accel=4.5).hover(1.0)
+    b.leg(20.0, 0.0, speed=5.0, accel=5.0).hover(1.5)
+    b.leg(0.0, 0.0, 6.0, speed=1.5, accel=1.5)
+    return MultirotorProfile("bench flights", b.track, Track(), b.t, 1.0, 0, Track(),
+                             drag_per_s)

@@ -21,6 +21,25 @@ the real ones do (PX4 and ArduPilot behaviour taken from their MAVLink sources):
 
 Every personality also sends SCALED_PRESSURE, the GPS messages when a GPS is fitted,
 and the emulator's HIL_STATE_QUATERNION truth.
+
+Every personality tells its flight state as PX4 and ArduPilot do, so that a listener
+can learn to trust (or not) what an autopilot says about flying:
+
+* HEARTBEAT base_mode has MAV_MODE_FLAG_SAFETY_ARMED while armed. system_status is
+  STANDBY when disarmed and ACTIVE when armed for PX4 (from its arming state) and the
+  seeds' board; ArduPilot's follows Copter's ``vehicle_system_status`` (STANDBY while
+  ``land_complete``): STANDBY on the ground, armed or not, ACTIVE from take-off to
+  touchdown (``status_follows_landed``).
+* EXTENDED_SYS_STATE (vtol_state undefined, landed_state) is a stream that is off until
+  asked for (SET_MESSAGE_INTERVAL; 1 Hz for "the default rate") or sent once for
+  MAV_CMD_REQUEST_MESSAGE.
+
+A bare board (``EmulatorConfig.flight_state=False``) tells neither: no armed flag ever
+(system_status always ACTIVE), and no EXTENDED_SYS_STATE stream.
+
+MAV_CMD_REQUEST_MESSAGE for a message without a stream is refused with
+``request_refused_result``: PX4 DENIED (its ``handle_request_message_command``),
+ArduPilot FAILED (no ``ap_message`` for the id), the seeds' board DENIED.
 """
 
 from __future__ import annotations
@@ -37,6 +56,9 @@ COMMON_STREAMS = ("SCALED_PRESSURE", "GPS_RAW_INT", "GLOBAL_POSITION_INT",
                   "LOCAL_POSITION_NED", "HIL_STATE_QUATERNION")
 #: A stream at its natural rate: every sample / reading / fix.
 NATURAL = None
+#: Streams every personality has but only sends when asked, with the interval [s] that
+#: "the default rate" (SET_MESSAGE_INTERVAL with 0 µs) gives them.
+ON_REQUEST_STREAMS = {"EXTENDED_SYS_STATE": 1.0}
 
 
 @dataclass(frozen=True)
@@ -51,6 +73,13 @@ class Personality:
     declination_param: str | None  # its magnetic declination parameter, if any
     declination_unit: str = "deg"  # "deg" or "rad"
     whole_ms: bool = False  # intervals kept in whole milliseconds (ArduPilot)
+    #: COMMAND_ACK result of MAV_CMD_REQUEST_MESSAGE for a message it has no stream of
+    request_refused_result: int = mavlink.MAV_RESULT_DENIED
+    #: MAV_CMD_REQUEST_MESSAGE: the ACK goes before the message (ArduPilot queues it)
+    ack_before_requested: bool = False
+    #: HEARTBEAT system_status STANDBY on the ground, ACTIVE in the air (ArduPilot),
+    #: instead of STANDBY disarmed, ACTIVE armed (PX4)
+    status_follows_landed: bool = False
 
     @property
     def streams(self) -> tuple[str, ...]:
@@ -75,7 +104,8 @@ ARDUPILOT = Personality(
     imu_messages=("RAW_IMU", "SCALED_IMU2"), attitude_messages=("ATTITUDE",),
     defaults={"RAW_IMU": 0.02, "SCALED_IMU2": 0.02, "ATTITUDE": 0.02},
     refused_result=mavlink.MAV_RESULT_FAILED, declination_param="COMPASS_DEC",
-    declination_unit="rad", whole_ms=True)
+    declination_unit="rad", whole_ms=True, request_refused_result=mavlink.MAV_RESULT_FAILED,
+    ack_before_requested=True, status_follows_landed=True)
 
 PERSONALITIES = {p.name: p for p in (STM32, PX4, ARDUPILOT)}
 

@@ -19,6 +19,9 @@ velocity at the fix. ``gps_aiding()`` turns them into the estimators' ``vel``/``
 
 Truth is given for every IMU sample, on the same board clock (``truth_time_us`` is
 ``time_us``); ``truth_on_wire`` marks those also sent as HIL_STATE_QUATERNION.
+``armed`` and ``landed_state`` (MAV_LANDED_STATE: 1 on ground, 2 in air, 3 take-off,
+4 landing) are the true flight state at each sample (``Profile.flight_state``), whether
+or not the board tells it on the link (``EmulatorConfig.flight_state``).
 """
 
 from __future__ import annotations
@@ -52,6 +55,8 @@ class Recording:
     truth_position_ned: np.ndarray  # (N, 3) m
     truth_velocity_ned: np.ndarray  # (N, 3) m/s
     truth_on_wire: np.ndarray  # (N,) bool
+    armed: np.ndarray  # (N,) bool, the true flight state
+    landed_state: np.ndarray  # (N,) uint8 MAV_LANDED_STATE
     # barometer samples (M)
     baro_time_us: np.ndarray
     baro_t_s: np.ndarray

@@ -113,6 +113,7 @@ class SampleSource:
         self._last_imu = (gyr_c[-1].copy(), acc_c[-1].copy(), int(temp_raw[-1]))
 
         truth = self.profile.truth(t)
+        armed, landed_state = self.profile.flight_state(t)
         mag_c, updated = self._magnetometer(t)
         time_us = self.clock.stamp(t, self.clock_faults.offsets(t))
         baro = self._barometer(self.time_s)
@@ -133,6 +134,7 @@ class SampleSource:
             truth_mag=truth.to_body(self.field_ned),
             truth_position_ned=truth.position_ned, truth_velocity_ned=truth.velocity_ned,
             truth_on_wire=(k0 + np.arange(n)) % cfg.truth_divider == 0,
+            armed=armed, landed_state=landed_state,
             **baro, **gps,
         )
 

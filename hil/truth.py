@@ -11,6 +11,11 @@ from estimators import quat
 
 from .environment import GRAVITY_NED
 
+# MAV_LANDED_STATE values (EXTENDED_SYS_STATE.landed_state), kept here without pymavlink.
+LANDED_UNDEFINED, LANDED_ON_GROUND, LANDED_IN_AIR, LANDED_TAKEOFF, LANDED_LANDING = range(5)
+LANDED_NAMES = {LANDED_UNDEFINED: "undefined", LANDED_ON_GROUND: "on ground",
+                LANDED_IN_AIR: "in air", LANDED_TAKEOFF: "takeoff", LANDED_LANDING: "landing"}
+
 
 @dataclass(frozen=True)
 class Truth:
@@ -35,9 +40,19 @@ class Truth:
 
 
 class Profile:
-    """A motion: truth at any times."""
+    """A motion: truth at any times, and the flight state a flight controller would
+    report for it.
+
+    The default flight state is that of a body moved by hand (or by anything but its
+    own rotors): never armed, always ON_GROUND. Profiles that fly override it.
+    """
 
     name = "profile"
 
     def truth(self, t: np.ndarray) -> Truth:
         raise NotImplementedError
+
+    def flight_state(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(armed (N,) bool, landed_state (N,) uint8 MAV_LANDED_STATE) at times t."""
+        t = np.asarray(t, dtype=float)
+        return np.zeros(t.shape, dtype=bool), np.full(t.shape, LANDED_ON_GROUND, dtype=np.uint8)

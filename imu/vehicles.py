@@ -1,16 +1,19 @@
 """What kind of vehicle a MAVLink HEARTBEAT (or a PX4 ``MAV_TYPE`` parameter) names.
 
 The estimators need one fact about the vehicle: whether it is a multirotor, whose
-accelerometer measures thrust along body z plus rotor drag — the model ``eskf`` uses to
-see its tilt without aiding. Bridge and replay both ask here.
+accelerometer measures thrust along body z plus rotor drag *while it flies* — the model
+``eskf`` uses to see its tilt without aiding (whether it flies is ``imu.flight_state``'s
+question). Bridge and replay both ask here (through ``estimators.vehicle_model``).
 """
 
 from __future__ import annotations
 
-#: MAV_TYPE values of vehicles lifted by rotors whose thrust is along body z: quad-, hexa-,
-#: octo-, tri-, dodeca-, decarotors, the generic multirotor, coaxial and single-rotor
-#: helicopters. VTOL types are left out: in forward flight their wing carries them.
-MULTIROTOR_TYPES = frozenset({2, 3, 4, 13, 14, 15, 29, 35, 43})
+#: MAV_TYPE values of vehicles lifted by several rotors whose thrust is along body z and
+#: whose horizontal force is rotor drag: quad-, hexa-, octo-, tri-, dodeca-, decarotors
+#: and the generic multirotor. Left out: helicopters (a single rotor hovers with a
+#: lateral force that balances the tail rotor's, so drag is not the horizontal force)
+#: and VTOLs (in forward flight their wing carries them).
+MULTIROTOR_TYPES = frozenset({2, 13, 14, 15, 29, 35, 43})
 
 _NAMES = {0: "generic", 1: "fixed wing", 2: "quadrotor", 3: "coaxial helicopter",
           4: "helicopter", 10: "ground rover", 11: "surface boat", 12: "submarine",

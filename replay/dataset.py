@@ -95,6 +95,21 @@ class Velocity:
 
 
 @dataclass(frozen=True)
+class StateEvent:
+    """One report of the vehicle's flight state on the IMU clock (see ``imu.flight_state``).
+
+    ``kind``: ``heartbeat`` (value = base_mode, ``autopilot`` = MAV_AUTOPILOT),
+    ``landed_state`` (EXTENDED_SYS_STATE, value = MAV_LANDED_STATE), ``land_detector``
+    (value 1 landed, 0 not), ``armed`` (value 1 armed, 0 disarmed).
+    """
+
+    t: float
+    kind: str
+    value: int
+    autopilot: int = 0
+
+
+@dataclass(frozen=True)
 class Recording:
     """IMU samples (SI units, body axes of the reference) and an optional reference.
 
@@ -125,6 +140,9 @@ class Recording:
     velocity: Velocity | None = None
     mav_type: int | None = None  # MAVLink MAV_TYPE of the vehicle, None when unknown
     mav_type_source: str = ""  # where it came from (HEARTBEAT, parameter MAV_TYPE)
+    #: the vehicle's own reports of its flight state, in time order (replay.flight)
+    state_events: tuple[StateEvent, ...] = ()
+    state_events_source: str = ""  # the messages / topics they came from
 
     def __post_init__(self) -> None:
         n = self.t.shape[0]

@@ -12,13 +12,15 @@ import numpy as np
 import estimators
 from estimators import metrics
 from estimators import quat as Q
-from estimators.eskf import MULTIROTOR_DRAG_PER_S
 from estimators.spec import EstimatorSpec
-from imu.vehicles import is_multirotor, type_name
+from estimators.vehicle_model import model_params
+from imu.flight_state import state_name
+from imu.vehicles import type_name
 
 from .align import DEFAULT_MAX_GAP_S, measure_lag, reference_at
 from .dataset import Recording, ReplayInputError
 from .declination import Declination, resolve
+from .flight import PHASES, FlightTrack, track
 
 #: Gyro-only integrators: left out of the default comparison (they only drift), still
 #: available by name with --estimator.
@@ -49,6 +51,7 @@ class Prepared:
     aid: str = "none"  # "velocity": the recording's velocity goes to the estimators
     aid_note: str = ""  # what aiding the log offers and what is done with it
     unscored: str = ""  # why nothing can be scored ("" when something can)
+    flight: FlightTrack | None = None  # the vehicle's flight state and phases per sample
 
 
 def prepare(rec: Recording, method: str = "slerp", max_gap: float = DEFAULT_MAX_GAP_S,
@@ -56,9 +59,11 @@ def prepare(rec: Recording, method: str = "slerp", max_gap: float = DEFAULT_MAX_
     """Reference on the IMU times, scored samples, declination and aiding for ``rec``."""
     dec = resolve(rec, declination_deg)
     aid, aid_note = _choose_aid(rec, aid)
+    flight = track(rec)
     if rec.reference is None:
         return Prepared(rec, None, np.zeros(rec.n, dtype=bool), dec, aid, aid_note,
-                        "no reference attitude in the file: nothing to score against")
+                        "no reference attitude in the file: nothing to score against",
+                        flight)
     q_ref = reference_at(rec.reference, rec.t, method, max_gap)
     scored = np.all(np.isfinite(q_ref), axis=1)
     if rec.score_mask is not None:
@@ -71,25 +76,24 @@ def prepare(rec: Recording, method: str = "slerp", max_gap: float = DEFAULT_MAX_
                f"{rec.t[-1]:.1f} s) with gaps under {max_gap:g} s")
         if r.t.size and rec.score_mask is not None:
             why = f"no sample with a reference inside the file's score mask; {why}"
-    return Prepared(rec, q_ref, scored, dec, aid, aid_note, why)
-
-
-def vehicle_params(rec: Recording, name: str) -> dict[str, float]:
-    """Estimator parameters the vehicle's kind implies: a multirotor runs eskf's rotor-drag
-    model (its accelerometer sees thrust, not gravity, whenever it accelerates)."""
-    known = estimators.estimator_class(name).param_names()
-    if is_multirotor(rec.mav_type) and "drag" in known:
-        return {"drag": MULTIROTOR_DRAG_PER_S}
-    return {}
+    return Prepared(rec, q_ref, scored, dec, aid, aid_note, why, flight)
 
 
 def vehicle_note(rec: Recording) -> str:
     kind = type_name(rec.mav_type)
     if rec.mav_type is None:
         return "unknown (no HEARTBEAT or MAV_TYPE in the log): no vehicle model"
-    model = "eskf runs its multirotor drag model" if is_multirotor(rec.mav_type) else \
-        "no vehicle model"
+    model = ("eskf's multirotor drag model while airborne" if model_params("eskf", rec.mav_type)
+             else "no vehicle model")
     return f"{kind} ({rec.mav_type_source}): {model}"
+
+
+def flight_kwargs(prep: Prepared, sl: slice) -> dict[str, np.ndarray]:
+    """The ``airborne`` keyword for ``Estimator.run`` (empty when the log says nothing:
+    the estimator then decides from the data)."""
+    if prep.flight is None or not prep.flight.known:
+        return {}
+    return {"airborne": prep.flight.airborne[sl]}
 
 
 def estimators_take_velocity() -> bool:
@@ -137,6 +141,7 @@ class Run:
     bias: np.ndarray  # (N, 3) rad/s
     counters: estimators.SampleCounters
     seconds: float  # wall time of the batch run
+    air_model: np.ndarray | None = None  # (N,) bool: ran its in-flight model (eskf's drag)
 
 
 def run_estimator(prep: Prepared, spec: EstimatorSpec, init: str = "sensors") -> Run:
@@ -155,13 +160,13 @@ def run_estimator(prep: Prepared, spec: EstimatorSpec, init: str = "sensors") ->
         q0 = prep.q_ref[start]
     elif init != "sensors":
         raise ValueError(f"init must be 'sensors' or 'reference', got {init!r}")
-    params = {"declination": prep.declination.rad, **vehicle_params(rec, spec.name),
+    params = {"declination": prep.declination.rad, **model_params(spec.name, rec.mav_type),
               **spec.params}  # -e ...:declination=, :drag= win
     est = estimators.create(spec.name, rate_hz=rec.rate_hz, world=rec.world, q0=q0, **params)
     sl = slice(start, None)
     began = time.perf_counter()
     res = est.run(rec.gyr[sl], rec.acc[sl], None if rec.mag is None else rec.mag[sl],
-                  dt=rec.dt[sl], **aiding_kwargs(prep, sl))
+                  dt=rec.dt[sl], **aiding_kwargs(prep, sl), **flight_kwargs(prep, sl))
     seconds = time.perf_counter() - began
     q = np.full((rec.n, 4), np.nan)
     flags = np.zeros(rec.n, dtype=np.uint8)
@@ -169,8 +174,10 @@ def run_estimator(prep: Prepared, spec: EstimatorSpec, init: str = "sensors") ->
     started = res.initialised
     q[sl][started] = res.q[started]
     flags[sl] = res.flags
+    air_model = np.zeros(rec.n, dtype=bool)
+    air_model[sl] = res.air_model
     bias[sl] = res.bias
-    return Run(spec, q, flags, bias, est.counters, seconds)
+    return Run(spec, q, flags, bias, est.counters, seconds, air_model)
 
 
 @dataclass(frozen=True)
@@ -192,6 +199,18 @@ class Score:
     run_s: float  # batch wall time
     six_d: bool = False  # no magnetometer used: judge on inclination only (BROAD rule)
     reasons: dict[str, str] = field(default_factory=dict)  # column -> why it is NaN
+    #: phase -> {"total_deg", "inclination_deg", "samples"} (replay.flight.PHASES)
+    phases: dict[str, dict[str, float]] = field(default_factory=dict)
+
+    @property
+    def worst_phase(self) -> tuple[str, float] | None:
+        """The phase with the largest error (total, or inclination when 6D)."""
+        key = "inclination_deg" if self.six_d else "total_deg"
+        scored = {p: v[key] for p, v in self.phases.items() if math.isfinite(v[key])}
+        if not scored:
+            return None
+        name = max(scored, key=scored.get)
+        return name, scored[name]
 
     def as_json(self) -> dict:
         """Plain dict with NaN as None (JSON has no NaN), ``reasons`` for the None ones."""
@@ -242,12 +261,29 @@ def score(prep: Prepared, run: Run) -> Score:
             converged = nan  # measured on the total error, which includes heading
             reasons["convergence_s"] = why
     return Score(
+        phases=phase_scores(prep, run, keep, six_d),
         total_deg=total, heading_deg=heading, inclination_deg=rms.inclination_deg,
         roll_deg=float(euler_rms[0]), pitch_deg=float(euler_rms[1]), yaw_deg=yaw,
         lag_s=float(lag), convergence_s=converged,
         samples=rms.samples, acc_rejected_frac=acc_rej / n_run,
         mag_rejected_frac=mag_rej / n_run, skipped=run.counters.skipped, run_s=run.seconds,
         six_d=six_d, reasons=reasons)
+
+
+def phase_scores(prep: Prepared, run: Run, keep: np.ndarray, six_d: bool
+                 ) -> dict[str, dict[str, float]]:
+    """RMS errors of the scored samples in each flight phase the recording has."""
+    if prep.flight is None or prep.q_ref is None:
+        return {}
+    out = {}
+    for k, name in enumerate(PHASES):
+        sel = keep & (prep.flight.phase == k)
+        if not sel.any():
+            continue
+        rms = metrics.rms_errors(run.q[sel], prep.q_ref[sel])
+        out[name] = {"total_deg": float("nan") if six_d else rms.total_deg,
+                     "inclination_deg": rms.inclination_deg, "samples": int(sel.sum())}
+    return out
 
 
 SCORE_COLUMNS = ("total_deg", "heading_deg", "inclination_deg", "roll_deg", "pitch_deg",
@@ -318,6 +354,17 @@ class Evaluation:
         ref = self.recording.reference
         return None if ref is None else ref.kind
 
+    def flight_json(self) -> dict | None:
+        fl = self.prepared.flight
+        if fl is None:
+            return None
+        return {"note": fl.note(), "source": fl.source, "reports": fl.events_source,
+                "flap_fallbacks": fl.flap_fallbacks,
+                "switches": [{"t": sw.t, "state": state_name(sw.airborne), "source": sw.source}
+                             for sw in fl.switches],
+                "bands": [{"start": a, "end": b, "state": n}
+                          for a, b, n in fl.bands(self.recording.t)]}
+
     def as_json(self) -> dict:
         rec = self.recording
         return {
@@ -339,6 +386,7 @@ class Evaluation:
             "aiding": self.prepared.aid,
             "aiding_note": self.prepared.aid_note,
             "vehicle": vehicle_note(self.prepared.recording),
+            "flight_state": self.flight_json(),
             "not_scored": self.prepared.unscored or None,
             "not_run": self.not_run or None,
             "estimators": {label: s.as_json() for label, s in self.scores.items()},

@@ -24,6 +24,7 @@ from estimators import _core, metrics
 from estimators.spec import user_param
 
 from .evaluate import Evaluation, vehicle_note
+from .flight import PHASES
 from .plotdata import decimation, plot_angles
 from .summary import COLUMNS
 
@@ -86,6 +87,7 @@ def _info_html(ev: Evaluation) -> str:
         ("declination used", prep.declination.describe()),
         ("aiding", prep.aid_note),
         ("vehicle", vehicle_note(prep.recording)),
+        ("flight state", prep.flight.note() if prep.flight is not None else "not read"),
         ("board profile", rec.board or "not applicable (SI units in the log)"),
         ("attitude-bridge", product_version()),
     ]
@@ -150,7 +152,30 @@ def _scores_html(ev: Evaluation) -> str:
                     + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
     foot = "".join(f"<li>({k}) {html.escape(n)}</li>" for k, n in enumerate(notes, 1))
     return (f"<h3>Scores</h3><table class='scores'><tr><th>estimator</th>{head}</tr>"
-            f"{''.join(rows)}</table><ul class='notes'>{foot}</ul>")
+            f"{''.join(rows)}</table><ul class='notes'>{foot}</ul>{_phases_html(ev)}")
+
+
+def _phases_html(ev: Evaluation) -> str:
+    """Total error (inclination without magnetometer) per flight phase, worst marked."""
+    present = [p for p in PHASES if any(p in s.phases for s in ev.scores.values())]
+    if len(present) < 2:
+        return ""
+    head = "".join(f"<th>{p}</th>" for p in present)
+    rows = []
+    for label, sc in ev.scores.items():
+        key = "inclination_deg" if sc.six_d else "total_deg"
+        worst = sc.worst_phase
+        cells = []
+        for p in present:
+            v = sc.phases.get(p, {}).get(key, math.nan)
+            text = f"{v:.3f}" if math.isfinite(v) else "–"
+            cells.append(f"<b>{text}</b>" if worst and worst[0] == p else text)
+        rows.append(f"<tr><th>{html.escape(label)}</th>"
+                    + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+    return ("<h3>By flight phase</h3><p>RMS total error in degrees (inclination without a "
+            "magnetometer); the worst phase in bold. Phases from the vehicle's own reports "
+            "(armed, landed state).</p><table class='scores'><tr><th>estimator</th>"
+            f"{head}</tr>{''.join(rows)}</table>")
 
 
 def _plots(ev: Evaluation) -> list:
@@ -209,8 +234,28 @@ def _plots(ev: Evaluation) -> list:
             sl = decimation(int(ok.sum()), MAX_POINTS)
             fig.scatter(t[ok][sl], v[ok, k][sl], size=3, color=_colour(k), legend_label=axis)
     for fig in figs:
+        _flight_bands(fig, ev, rec.t[0])
         _finish(fig)
     return figs
+
+
+#: Background of the time axis by the flight state the estimators were given.
+BAND_COLOURS = {"airborne": "#8ecae6", "on ground": "#e9c46a"}
+
+
+def _flight_bands(fig, ev: Evaluation, t0: float) -> None:
+    """Shade the time axis where the vehicle said it was airborne / on the ground (no
+    shade: nothing said, the estimator decided from the data)."""
+    from bokeh.models import BoxAnnotation
+
+    fl = ev.prepared.flight
+    if fl is None or not fl.known:
+        return
+    for start, end, state in fl.bands(ev.recording.t):
+        colour = BAND_COLOURS.get(state)
+        if colour is not None:
+            fig.add_layout(BoxAnnotation(left=start - t0, right=end - t0, fill_color=colour,
+                                         fill_alpha=0.15, level="underlay"))
 
 
 def section(ev: Evaluation) -> list:

@@ -12,6 +12,7 @@ import sys
 from typing import TextIO
 
 from .evaluate import Evaluation, vehicle_note
+from .flight import PHASES
 
 #: (Score field, header, scale, format)
 COLUMNS = (("total_deg", "total°", 1.0, "{:.3f}"), ("heading_deg", "heading°", 1.0, "{:.3f}"),
@@ -34,6 +35,8 @@ def header_lines(ev: Evaluation) -> list[str]:
     lines.append(f"  declination: {prep.declination.describe()}")
     lines.append(f"  aiding:      {prep.aid_note}")
     lines.append(f"  vehicle:     {vehicle_note(prep.recording)}")
+    if prep.flight is not None:
+        lines.append(f"  flight:      {prep.flight.note()}")
     lines += [f"  note: {n}" for n in rec.notes]
     if rec.cleanup.dropped:
         lines.append(f"  note: dropped IMU samples: {rec.cleanup}")
@@ -65,7 +68,25 @@ def table_lines(ev: Evaluation) -> list[str]:
     return lines
 
 
+def phase_lines(ev: Evaluation) -> list[str]:
+    """Error per flight phase (total°, inclination° when 6D): every part of the recording
+    is scored, and the worst phase is the one to look at."""
+    present = [p for p in PHASES if any(p in s.phases for s in ev.scores.values())]
+    if len(present) < 2:
+        return []
+    labels = list(ev.scores)
+    width = max(9, *(len(k) for k in labels))
+    lines = ["by phase (total°, or incl° without magnetometer):",
+             f"{'estimator':<{width}}" + "".join(f"{p:>{CELL + 1}}" for p in present)]
+    for label, sc in ev.scores.items():
+        key = "inclination_deg" if sc.six_d else "total_deg"
+        cells = [f"{sc.phases[p][key]:.3f}" if p in sc.phases and
+                 math.isfinite(sc.phases[p][key]) else "-" for p in present]
+        lines.append(f"{label:<{width}}" + "".join(f"{c:>{CELL + 1}}" for c in cells))
+    return lines
+
+
 def print_summary(ev: Evaluation, stream: TextIO | None = None) -> None:
     out = stream if stream is not None else sys.stdout
-    for line in header_lines(ev) + table_lines(ev):
+    for line in header_lines(ev) + table_lines(ev) + phase_lines(ev):
         print(line, file=out)

@@ -49,6 +49,7 @@ async def test_tcp_link_streams_and_reconnects_after_the_peer_drops():
     q0 = euler_q(5.0, 10.0, -30.0)
     received: list[bytes] = []
     sessions = []
+    finished = []  # sessions whose replies have all been read
 
     loop = asyncio.get_running_loop()
     booted = loop.time() - 1.0
@@ -66,13 +67,15 @@ async def test_tcp_link_streams_and_reconnects_after_the_peer_drops():
             while data := await asyncio.wait_for(reader.read(65536), 0.4):
                 received.append(data)
         writer.close()
+        finished.append(len(finished))
 
     server = await asyncio.start_server(vehicle, "127.0.0.1", 0)
     port = server.sockets[0].getsockname()[1]
     async with running_bridge(connect=f"tcp:127.0.0.1:{port}", out_rate=0.0) as bridge:
-        ok = await wait_until(lambda: len(sessions) >= 2 and
+        # wait for what is asserted on: two whole sessions, their replies read
+        ok = await wait_until(lambda: len(finished) >= 2 and
                               sum(s.accepted for s in bridge.ingest.sources.values()) >= 400,
-                              timeout=8.0)
+                              timeout=10.0)
         reconnects = bridge.link.stats.reconnects
     server.close()
     assert ok

@@ -163,7 +163,8 @@ def test_sih_scores_against_truth_in_true_north(sih_box):
 def table_of(out: str) -> tuple[list[list[str]], list[str]]:
     lines = out.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith("estimator"))
-    rows = [line.split() for line in lines[start + 1:] if line and not line.startswith(" ")]
+    end = next((i for i, line in enumerate(lines) if line.startswith("by phase")), len(lines))
+    rows = [line.split() for line in lines[start + 1:end] if line and not line.startswith(" ")]
     notes = [line.strip() for line in lines[start + 1:] if line.startswith("  (")]
     return rows, notes
 

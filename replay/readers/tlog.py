@@ -29,7 +29,7 @@ import numpy as np
 from estimators import quat as Q
 
 from ..board import choose_board, magnitude_warning
-from ..dataset import Position, Recording, Reference, ReplayInputError
+from ..dataset import Position, Recording, Reference, ReplayInputError, StateEvent
 from ..timebase import sample_and_hold
 from ._common import clean_stream, make_reference
 from .velocity import VelocityRows, place_velocity
@@ -40,7 +40,7 @@ IMU_MESSAGES = ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_I
 REFERENCE_MESSAGES = ("HIL_STATE_QUATERNION", "ATTITUDE_QUATERNION", "ATTITUDE")
 VELOCITY_MESSAGES = ("LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "GPS_RAW_INT")
 OTHER_MESSAGES = ("PARAM_VALUE", "SYSTEM_TIME", "GPS_GLOBAL_ORIGIN", "HOME_POSITION",
-                  "HEARTBEAT")
+                  "HEARTBEAT", "EXTENDED_SYS_STATE")
 G = 9.80665
 HIGHRES_MAG_BITS = 0x1C0  # fields_updated bits 6..8: xmag, ymag, zmag
 REBOOT_JUMP_S = 1.0  # board time going back by more than this: the vehicle rebooted
@@ -50,6 +50,8 @@ UINT16_UNKNOWN = 65535
 MAVLINK1_STX, MAVLINK2_STX = 0xFE, 0xFD
 STAMP_JUMP_US = 86_400_000_000  # consecutive arrival stamps a day apart: misframed record
 GPS_FIX_3D = 3
+MAV_TYPE_GCS = 6
+MAV_AUTOPILOT_INVALID = 8
 
 
 def read(path: Path, board: str | None = None, imu: str | None = None,
@@ -91,6 +93,10 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
     when, when_source = _date(in_session, src)
     velocity = place_velocity(_velocity_rows(in_session, src, clock), t)
     beats = [m.type for m in _same_component(messages.get("HEARTBEAT", []), src)]
+    events, events_source, foreign = _state_events(in_session, src, clock)
+    if foreign:
+        notes.append(f"ignored {foreign} HEARTBEAT/EXTENDED_SYS_STATE message(s) from "
+                     f"other systems than the IMU's (system {src[0]})")
     return Recording(path=path, format="tlog", t=t, gyr=gyr, acc=acc,
                      mag=mag if np.isfinite(mag).any() else None, world="NED", body="FRD",
                      source=imu_type, reference=ref, cleanup=cleanup, notes=tuple(notes),
@@ -98,7 +104,37 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
                      params=_params(messages, src), position=_position(in_session, src),
                      when=when, when_source=when_source, velocity=velocity,
                      mav_type=Counter(beats).most_common(1)[0][0] if beats else None,
-                     mav_type_source="HEARTBEAT" if beats else "")
+                     mav_type_source="HEARTBEAT" if beats else "",
+                     state_events=events, state_events_source=events_source)
+
+
+def _state_events(messages: dict[str, list], src: tuple, clock: BoardClock
+                  ) -> tuple[tuple[StateEvent, ...], str, int]:
+    """The vehicle's flight-state reports (HEARTBEAT armed flag, EXTENDED_SYS_STATE) on the
+    IMU clock; only from the IMU's own system and component: a ground station's heartbeat
+    or another vehicle's state (spoofed or not) says nothing about this vehicle. Also the
+    count of such reports from other systems."""
+    beats = [m for m in messages.get("HEARTBEAT", [])  # not a GCS's or a companion's
+             if m.type != MAV_TYPE_GCS and m.autopilot != MAV_AUTOPILOT_INVALID]
+    states = messages.get("EXTENDED_SYS_STATE", [])
+    foreign = sum(1 for m in [*beats, *states] if m.get_srcSystem() != src[0])
+    events: list[StateEvent] = []
+    used = []
+    for kind, rows in (("heartbeat", _same_component(beats, src)),
+                       ("landed_state", _same_component(states, src))):
+        if not rows:
+            continue
+        used.append("HEARTBEAT" if kind == "heartbeat" else "EXTENDED_SYS_STATE")
+        t = clock.preceding(np.array([m._order for m in rows]))
+        for m, tk in zip(rows, t.tolist(), strict=True):
+            if not math.isfinite(tk):
+                continue
+            if kind == "heartbeat":
+                events.append(StateEvent(tk, kind, int(m.base_mode), int(m.autopilot)))
+            else:
+                events.append(StateEvent(tk, kind, int(m.landed_state)))
+    events.sort(key=lambda e: e.t)
+    return tuple(events), " + ".join(used), foreign
 
 
 @dataclass(frozen=True)

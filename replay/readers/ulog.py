@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..board import magnitude_warning
-from ..dataset import Position, Recording, Reference, ReplayInputError
+from ..dataset import Position, Recording, Reference, ReplayInputError, StateEvent
 from ..timebase import sample_and_hold
 from ._common import clean_stream, make_reference, require_imu, trim_before_first_mag
 from .velocity import VelocityRows, place_velocity
@@ -25,6 +25,7 @@ from .velocity import VelocityRows, place_velocity
 US = 1e-6
 RELATIVE_INVALID = 2147483647  # sensor_combined *_timestamp_relative: "not updated"
 GPS_TOPICS = ("vehicle_gps_position", "sensor_gps")
+ARMING_STATE_ARMED = 2  # vehicle_status.arming_state (PX4's ARMING_STATE_ARMED)
 
 
 def read(path: Path, reference: str = "auto") -> Recording:
@@ -66,6 +67,10 @@ def read(path: Path, reference: str = "auto") -> Recording:
     ref = _reference(topics, reference, origin)
     warning = magnitude_warning(acc, "sensor_combined")
     when, when_source = _date(topics)
+    events, events_source = _state_events(topics, origin)
+    if not events:
+        notes.append("no flight state topics (vehicle_status, vehicle_land_detected): "
+                     "eskf decides from the data when the vehicle flies")
     return Recording(path=path, format="ulog", t=t, gyr=gyr, acc=acc, mag=mag, world="NED",
                      body="FRD", source="sensor_combined", reference=ref,
                      cleanup=cleanup, notes=tuple(notes),
@@ -75,7 +80,35 @@ def read(path: Path, reference: str = "auto") -> Recording:
                      velocity=place_velocity(_velocity_rows(topics, origin), t),
                      mav_type=_mav_type(ulog.initial_parameters),
                      mav_type_source="parameter MAV_TYPE" if "MAV_TYPE" in
-                     ulog.initial_parameters else "")
+                     ulog.initial_parameters else "",
+                     state_events=events, state_events_source=events_source)
+
+
+def _state_events(topics: dict, origin: int) -> tuple[tuple[StateEvent, ...], str]:
+    """Flight-state reports: ``vehicle_status.arming_state`` and the land detector
+    (``vehicle_land_detected``: landed, maybe_landed or ground_contact all mean the
+    thrust is not carrying the vehicle, so its in-flight model does not hold)."""
+    events: list[StateEvent] = []
+    used = []
+    status = topics.get(("vehicle_status", 0))
+    if status is not None and "arming_state" in status and len(status["timestamp"]):
+        used.append("vehicle_status")
+        armed = np.asarray(status["arming_state"]) == ARMING_STATE_ARMED
+        events += [StateEvent(t, "armed", int(a))
+                   for t, a in zip(_seconds(status["timestamp"], origin).tolist(),
+                                   armed.tolist(), strict=True)]
+    land = topics.get(("vehicle_land_detected", 0))
+    if land is not None and "landed" in land and len(land["timestamp"]):
+        used.append("vehicle_land_detected")
+        down = np.zeros(len(land["timestamp"]), dtype=bool)
+        for key in ("landed", "maybe_landed", "ground_contact"):
+            if key in land:
+                down |= np.asarray(land[key]) != 0
+        events += [StateEvent(t, "land_detector", int(d))
+                   for t, d in zip(_seconds(land["timestamp"], origin).tolist(),
+                                   down.tolist(), strict=True)]
+    events.sort(key=lambda e: e.t)
+    return tuple(events), " + ".join(used)
 
 
 def _mav_type(params: dict) -> int | None:

@@ -21,6 +21,9 @@ Trials:
   velocity with its age, as the bridge gets it, and the multirotor drag model while
   airborne), *drag* (the drag model alone), *vel* (aiding alone, ``drag=0``; table only)
   and *generic* (neither: a vehicle of unknown kind). PX4's own ATTITUDE is a row.
+* **ArduPilot SITL** flight (tests/data/sitl/arducopter_touchdown.tlog: Copter SITL, two
+  flights with a touchdown, RAW_IMU 333 Hz), truth = SIMSTATE placed by arrival; runs and
+  the autopilot's own ATTITUDE row as for PX4.
 * **Emulator** flights (``hil`` ``flight`` profile, 120 s, seeds 1-3, and the
   ``handheld_flight`` profile: carried by hand, two flights with a touchdown; 250 Hz):
   the GY-86 board calibrated from its own calibration session, GPS at 5 Hz with 100 ms
@@ -30,7 +33,7 @@ Trials:
   kept off by the flight state) and *generic* (``drag=0``).
 
 Reference rows: gyro integration (``quaternion``, from the true start), VQF 2.x online
-and offline (9D, defaults), imufusion (defaults), PX4's ATTITUDE, and our other
+and offline (9D, defaults), imufusion (defaults), the autopilot's ATTITUDE, and our other
 estimators.
 
 Leave-one-trial-out: the eskf noise parameters on the grid below are chosen on all
@@ -119,7 +122,7 @@ class Trial:
     """Sensor samples with truth on the IMU clock and the samples that count."""
 
     name: str
-    kind: str  # "broad" | "px4" | "emulator"
+    kind: str  # "broad" | "sitl" | "emulator" | "handheld"
     gyr: np.ndarray
     acc: np.ndarray
     mag: np.ndarray | None
@@ -173,8 +176,9 @@ def flight_runs(vel: np.ndarray | None, age: np.ndarray | None) -> list[Run]:
     return [*aided, Run("drag", params=quad), Run("generic")]
 
 
-def px4_trials(folders: list[Path]) -> list[Trial]:
-    """Every PX4 tlog with truth in ``folders``, scored whole, with its flight state."""
+def sitl_trials(folders: list[Path]) -> list[Trial]:
+    """Every PX4 / ArduPilot SITL tlog with truth in ``folders`` (HIL_STATE_QUATERNION,
+    SIMSTATE), scored whole, with its flight state."""
     from replay.align import reference_at
     from replay.declination import resolve
     from replay.flight import track
@@ -194,8 +198,10 @@ def px4_trials(folders: list[Path]) -> list[Trial]:
         fl = track(rec)
         runs = flight_runs(None if v is None else v.vel,
                            None if v is None else np.nan_to_num(v.age))
-        name = f.stem.replace("sih_", "").replace("px4_", "").replace("aggressive", "agg")
-        out.append(Trial(f"px4-{name}", "px4", rec.gyr, rec.acc, rec.mag, rec.dt,
+        stem = f.stem.replace("sih_", "").replace("px4_", "").replace("aggressive", "agg")
+        name = ("ap-" + stem.replace("arducopter_", "") if stem.startswith("arducopter")
+                else "px4-" + stem)
+        out.append(Trial(name, "sitl", rec.gyr, rec.acc, rec.mag, rec.dt,
                          rec.rate_hz, "NED", truth, scored, resolve(rec).rad, runs,
                          q0=truth[first], autopilot=autopilot,
                          airborne=fl.airborne if fl.known else None, phase=fl.phase))
@@ -345,7 +351,7 @@ def reference_rows(trials: list[Trial], names: list[str]) -> list[Row]:
                 put(label, trial, run, q)
             put("imufusion", trial, run, imufusion_row(trial))
             if trial.autopilot is not None:
-                put("PX4 ATTITUDE", trial, run, trial.autopilot)
+                put("autopilot ATTITUDE", trial, run, trial.autopilot)
     return list(rows.values())
 
 
@@ -491,7 +497,7 @@ def criteria_lines(trials: list[Trial], rows: dict[str, Row]) -> list[str]:
         return "ok" if ok else "NOT MET"
 
     for t in trials:
-        if t.kind in ("px4", "emulator"):
+        if t.kind in ("sitl", "emulator"):
             a, d = eskf.get(f"{t.name}/a"), eskf.get(f"{t.name}/d")
             v = eskf.get(f"{t.name}/v")
             if a and d and v:
@@ -499,12 +505,12 @@ def criteria_lines(trials: list[Trial], rows: dict[str, Row]) -> list[str]:
                 out.append(f"{t.name}: aided {a.total_deg:.3f} vs best of drag-only "
                            f"{d.total_deg:.3f} / aiding-only {v.total_deg:.3f}: "
                            f"{a.total_deg / best:.3f}x {verdict(a.total_deg <= best)}")
-        if t.kind == "px4" and "PX4 ATTITUDE" in rows:
-            own = rows["PX4 ATTITUDE"].cells.get(f"{t.name}/d")
+        if t.kind == "sitl" and "autopilot ATTITUDE" in rows:
+            own = rows["autopilot ATTITUDE"].cells.get(f"{t.name}/d")
             a = eskf.get(f"{t.name}/a")
             if own and a:
                 ok = a.total_deg <= own.total_deg and a.inclination_deg <= own.inclination_deg
-                out.append(f"{t.name}: eskf {a.total_deg:.3f}/{a.inclination_deg:.3f} vs PX4 "
+                out.append(f"{t.name}: eskf {a.total_deg:.3f}/{a.inclination_deg:.3f} vs autopilot "
                            f"{own.total_deg:.3f}/{own.inclination_deg:.3f} (total/incl): "
                            f"{verdict(ok)}")
         if t.kind == "handheld":
@@ -535,7 +541,7 @@ def main(argv: list[str] | None = None) -> int:
     began = time.perf_counter()
     seeds = (1, 2) if args.quick else (1, 2, 3)
     trials = (broad_trials(DATA / "broad")
-              + px4_trials([DATA / "px4_sih", REPO / "tests" / "data" / "sitl"])
+              + sitl_trials([DATA / "px4_sih", REPO / "tests" / "data" / "sitl"])
               + emulator_trials(seeds) + handheld_trials())
     print(f"loaded {len(trials)} trials in {time.perf_counter() - began:.0f} s")
     cols = [col_name(t, r) for t, r in columns(trials)]
@@ -581,7 +587,7 @@ def main(argv: list[str] | None = None) -> int:
                           ("inclination_deg", "inclination")):
         print(format_table(title, rows, cols, metric))
         print()
-    print("columns: BROAD trial number; px4-*/emu-* flights and hand-* hand-held emulator "
+    print("columns: BROAD trial number; px4-*/ap-*/emu-* flights and hand-* hand-held emulator "
           "recordings, /a aided + drag model, /d drag model only, /v aiding only (drag=0), "
           "/g generic (neither); the drag model runs only while the vehicle says it is "
           "airborne; the references take no aiding and no vehicle model and appear under /d")
@@ -591,7 +597,7 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(phase_lines(trials, {
         "eskf": lambda t: run_estimator(t, "eskf", aided[t.name]) if aided[t.name] else
         run_estimator(t, "eskf", t.runs[0]),
-        "PX4": lambda t: t.autopilot,
+        "autopilot": lambda t: t.autopilot,
         "vqf": lambda t: vqf_rows(t)["vqf online"]})))
     print()
     print("criteria (issue 17):")

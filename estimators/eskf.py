@@ -76,9 +76,9 @@ the velocity information), the bias random walk and a velocity random walk.
 Defaults, and on which data they were chosen (none of this is "data never seen"):
 rest and magnetic-disturbance thresholds are VQF's published values. The noise
 densities on ``benchmarks/accuracy.py``'s grid were chosen on all of its dev recordings
-(9 BROAD trials, 4 PX4 SIH flights, 4 emulator flights, 3 emulator hand-held
-recordings), and the same script cross-validates that choice leaving one recording out
-at a time. Everything else — the model's structure, the drag prior, the flight-state
+(9 BROAD trials, 4 PX4 SIH and 1 ArduPilot SITL flights, 4 emulator flights, 3 emulator
+hand-held recordings), and the same script cross-validates that choice leaving one
+recording out at a time. Everything else — the model's structure, the drag prior, the flight-state
 detector's constants, ``aid_heading`` / ``drag_heading`` and the remaining noise
 values — was set by hand while looking at those same recordings (docs/accuracy.md
 lists them), so it is in-sample.

@@ -104,7 +104,8 @@ async def test_declination_from_the_px4_parameter_reaches_the_estimate():
     # truth and shown next to the estimators (its error and lag), and each estimator
     # against it (the VEHICLE columns).
     own = status["vehicle_vs_truth"]
-    assert own is not None and own["samples"] > 100 and 0.0 < own["total_deg"] < 20.0
+    # (measured 7.9°: the emulated autopilot's own filter on an uncalibrated board; 1.5x)
+    assert own is not None and own["samples"] > 100 and 0.0 < own["total_deg"] < 11.8
     # Its lag: a number, or why there is none (beyond the search, reference static).
     assert (own["lag_s"] is not None and math.isfinite(own["lag_s"])) or own["lag_note"]
     vs_vehicle = status["compare"]["vehicle"]["eskf"]

@@ -135,12 +135,16 @@ def test_flight_output_is_the_estimators_own_result(flight_run):
 
 
 def test_flight_accuracy_against_truth(flight_run):
-    """The product target: primary estimate within 2° RMS of the truth after convergence."""
+    """Primary estimate against the truth over the whole stream (ground, arming, take-off,
+    flight) and after the first 10 s: measured 0.30° and 0.10° total (0.17° / 0.07°
+    inclination); gates 1.5x that."""
     _, listener, _ = flight_run
     est, ref, stamps = truth_at_outputs(listener)
-    converged = stamps >= stamps[0] + 10_000  # first 10 s excluded
+    whole = metrics.rms_errors(est, ref)
+    assert whole.total_deg < 0.45 and whole.inclination_deg < 0.26, whole
+    converged = stamps >= stamps[0] + 10_000
     err = metrics.rms_errors(est[converged], ref[converged])
-    assert err.total_deg < 2.0, err
+    assert err.total_deg < 0.15 and err.inclination_deg < 0.11, err
 
 
 FAULTS = {
@@ -288,3 +292,22 @@ async def test_fault_is_counted_and_estimate_recovers(kind):
         assert np.max(dev[-50:]) < 2.0, (kind, dev[-50:].max())
     else:
         check_against_truth(kind, cfg, listener, status)
+
+
+#: Hand-held profiles of a board that says quadrotor: emulator -> bridge, product
+#: defaults (the primary estimator with the model the bridge picks), whole stream
+#: scored against the truth. Measured total 0.56°, 0.67°, 0.53°; gates 1.5x that (the
+#: product target for a hand-held board is 1.0°).
+HAND_HELD = [("tilt", 15.0, 0.85), ("gentle", 15.0, 1.0), ("calibration", 15.0, 0.80)]
+
+
+@pytest.mark.parametrize("profile, seconds, gate", HAND_HELD)
+def test_a_quadrotor_carried_by_hand_through_the_bridge(profile, seconds, gate):
+    """The emulator says quadrotor but is disarmed on the ground: the bridge must not run
+    the rotor-drag model (which read the hand's tilts as flight: 13.7° on `tilt`)."""
+    cfg = EmulatorConfig(profile=profile, duration_s=seconds, seed=1, fast=True, **CALIBRATED)
+    listener, _, _ = asyncio.run(run_emulator_through_bridge(cfg, estimators=[]))
+    est, ref, _ = truth_at_outputs(listener)
+    assert len(est) > 0.9 * seconds * 50.0
+    err = metrics.rms_errors(est, ref)
+    assert err.total_deg < gate, (profile, err)

@@ -69,7 +69,7 @@ async def test_recording_replays_to_what_the_bridge_sent(tmp_path):
                  "--csv", str(out_csv)]) == 0
     doc = json.loads(out_json.read_text())
     assert doc["reference"] == "truth"
-    assert 0.0 < doc["estimators"]["mahony"]["total_deg"] < 10.0
+    assert 0.0 < doc["estimators"]["mahony"]["total_deg"] < 8.5  # measured 5.6°, 1.5x
     header, *rows = out_csv.read_text().splitlines()
     names = header.split(",")
     table = np.array([[float(x) if x else np.nan for x in r.split(",")] for r in rows])

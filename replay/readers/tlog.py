@@ -3,7 +3,8 @@
 IMU, in order of preference (or ``imu=`` to choose): HIGHRES_IMU (SI, gauss), RAW_IMU
 (integers whose meaning depends on the sender: an ``imu.boards`` profile, detected from
 gravity unless ``board=`` names one), SCALED_IMU/2/3 (mG, mrad/s, mgauss, FRD).
-References: HIL_STATE_QUATERNION is truth; ATTITUDE_QUATERNION, else ATTITUDE (Z-Y-X
+References: HIL_STATE_QUATERNION (PX4 SITL) or SIMSTATE (ArduPilot SITL) is truth;
+ATTITUDE_QUATERNION, else ATTITUDE (Z-Y-X
 Euler), from the same vehicle component as the IMU is the autopilot's own estimate.
 
 Time is ``time_usec`` / ``time_boot_ms`` from the messages. A message without a usable
@@ -37,7 +38,7 @@ from .velocity import VelocityRows, place_velocity
 os.environ["MAVLINK20"] = "1"
 
 IMU_MESSAGES = ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")
-REFERENCE_MESSAGES = ("HIL_STATE_QUATERNION", "ATTITUDE_QUATERNION", "ATTITUDE")
+REFERENCE_MESSAGES = ("HIL_STATE_QUATERNION", "SIMSTATE", "ATTITUDE_QUATERNION", "ATTITUDE")
 VELOCITY_MESSAGES = ("LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "GPS_RAW_INT")
 OTHER_MESSAGES = ("PARAM_VALUE", "SYSTEM_TIME", "GPS_GLOBAL_ORIGIN", "HOME_POSITION",
                   "HEARTBEAT", "EXTENDED_SYS_STATE")
@@ -197,7 +198,7 @@ def _collect(path: Path) -> tuple[dict[str, list], int]:
     parse (bad CRC, bytes lost) is skipped: the walk resumes at the next position that
     looks like a record (a start byte after a time stamp close to the last good one).
     """
-    from pymavlink.dialects.v20 import common
+    from pymavlink.dialects.v20 import ardupilotmega as common  # common + SIMSTATE
 
     try:
         data = path.read_bytes()
@@ -323,6 +324,14 @@ def _reference(messages: dict[str, list], src: tuple, reference: str,
             t, how = _message_times(rows, "time_usec", 1e-6, clock)
             q = np.array([m.attitude_quaternion for m in rows], dtype=float)
             return make_reference(t, q, "truth", "HIL_STATE_QUATERNION", timing=how)
+        rows = [m for m in messages.get("SIMSTATE", []) if m.get_srcSystem() == sysid]
+        if rows:
+            # ArduPilot SITL's simulator state (true north); it carries no time stamp
+            t = clock.preceding(np.array([m._order for m in rows]))
+            e = np.array([[m.roll, m.pitch, m.yaw] for m in rows], dtype=float)
+            return make_reference(t, Q.from_euler(e[:, 0], e[:, 1], e[:, 2]), "truth",
+                                  "SIMSTATE", timing="no time stamp: aligned by arrival "
+                                  "(board time of the IMU message before it)")
         if reference == "truth":
             return None
     for kind in ("ATTITUDE_QUATERNION", "ATTITUDE"):

@@ -24,7 +24,10 @@ WARNING once it has held for ``RATE_JUDGED_AFTER_S`` of samples.
 
 For PX4 and ArduPilot the velocity streams for aiding (:mod:`bridge.aiding`) are asked
 for too, after the IMU: LOCAL_POSITION_NED at 50 Hz and GPS_RAW_INT at 10 Hz; their
-refusal is only noted (other sources may still come).
+refusal is only noted (other sources may still come). Every vehicle is then asked for
+EXTENDED_SYS_STATE at ``FLIGHT_STATE_HZ``: its landed state decides when the flight-only
+models run (:mod:`imu.flight_state`); refused or unanswered, the estimator decides from
+the data, which is noted in the log.
 """
 
 from __future__ import annotations
@@ -50,6 +53,10 @@ IMU_CANDIDATES = {
 OTHER_CANDIDATES = ("RAW_IMU", "SCALED_IMU", "HIGHRES_IMU")
 #: Velocity streams asked from autopilots that have them, with the rate asked [Hz].
 AIDING_STREAMS = (("LOCAL_POSITION_NED", 50.0), ("GPS_RAW_INT", 10.0))
+#: The landed state (EXTENDED_SYS_STATE) is asked at this rate [Hz]: two agreeing reports
+#: switch the flight state, so a switch follows the vehicle within 0.4 s.
+FLIGHT_STATE_HZ = 5.0
+FLIGHT_STATE_STREAM = "EXTENDED_SYS_STATE"
 #: RAW_IMU units by autopilot (the board profile when ``--board`` is not given).
 RAW_IMU_BOARD = {ARDUPILOT: "ardupilot"}
 DEFAULT_BOARD = "gy86"
@@ -67,6 +74,11 @@ RETRY_LATER = frozenset((mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
 # States of the IMU negotiation.
 WAITING, ASKING, SETTLED, REFUSED, NO_ANSWER = (
     "waiting", "asking", "accepted", "refused", "no_answer")
+
+
+def _consequence(name: str) -> str:
+    return (": no landed state, eskf decides from the data when the vehicle flies"
+            if name == FLIGHT_STATE_STREAM else "")
 
 
 def result_name(result: int) -> str:
@@ -126,6 +138,7 @@ class StreamNegotiation:
     outstanding: Request | None = None
     refusals: list[str] = field(default_factory=list)
     aiding_results: dict[str, str] = field(default_factory=dict)
+    flight_state_result: str | None = None  # the EXTENDED_SYS_STATE request's answer
     commands_sent: int = 0
     acks: int = 0
     _steps: deque = field(default_factory=lambda: deque(maxlen=_RATE_STEPS))
@@ -195,10 +208,10 @@ class StreamNegotiation:
             return
         self.outstanding = None
         if not req.imu:
-            self.aiding_results[req.name] = result_name(result)
+            self._other_result(req.name, result_name(result))
             if result != ACCEPTED:
-                log.info("vehicle %d: %s at %g Hz refused (%s)", self.sysid, req.name,
-                         req.rate_hz, result_name(result))
+                log.info("vehicle %d: %s at %g Hz refused (%s)%s", self.sysid, req.name,
+                         req.rate_hz, result_name(result), _consequence(req.name))
             return
         if result == ACCEPTED:
             if self.state != SETTLED:
@@ -225,7 +238,15 @@ class StreamNegotiation:
                         req.rate_hz, req.tries)
             self._settle(NO_ANSWER)
         else:
-            self.aiding_results[req.name] = "no answer"
+            self._other_result(req.name, "no answer")
+            log.info("vehicle %d: no answer to %s at %g Hz%s", self.sysid, req.name,
+                     req.rate_hz, _consequence(req.name))
+
+    def _other_result(self, name: str, result: str) -> None:
+        if name == FLIGHT_STATE_STREAM:
+            self.flight_state_result = result
+        else:
+            self.aiding_results[name] = result
 
     def _settle(self, state: str) -> None:
         first = self.state == ASKING
@@ -236,6 +257,8 @@ class StreamNegotiation:
         self._short = False
         if first and self.aiding and self.autopilot in IMU_CANDIDATES:
             self.queue.extend(Request(name, rate, imu=False) for name, rate in AIDING_STREAMS)
+        if first:
+            self.queue.append(Request(FLIGHT_STATE_STREAM, FLIGHT_STATE_HZ, imu=False))
 
     # --- the achieved rate -----------------------------------------------------------
     def observe(self, msg_id: int, t: float) -> None:
@@ -286,4 +309,5 @@ class StreamNegotiation:
                 "state": self.state, "below_request": self._short,
                 "forced": self.forced is not None, "refused": list(self.refusals),
                 "commands": self.commands_sent, "acks": self.acks,
-                "aiding_streams": dict(self.aiding_results)}
+                "aiding_streams": dict(self.aiding_results),
+                "flight_state_stream": self.flight_state_result}

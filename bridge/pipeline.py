@@ -42,6 +42,7 @@ class VehicleSetup:
 
     declination_rad: float = 0.0
     model: str = UNKNOWN
+    airborne: bool | None = None  # what the vehicle says it is doing (imu.flight_state)
 
 
 @dataclass(slots=True)
@@ -62,8 +63,9 @@ class SourcePipeline:
 
     def __init__(self, key: SourceKey, specs: list[EstimatorSpec], rate_hz: float,
                  history: int, declination_rad: float = 0.0, settle_s: float = 1.0,
-                 model: str = UNKNOWN) -> None:
+                 model: str = UNKNOWN, airborne: bool | None = None) -> None:
         self.key = key
+        self.airborne = airborne
         self.specs = specs
         self.rate_hz = rate_hz
         self.settle_s = settle_s
@@ -81,8 +83,23 @@ class SourcePipeline:
 
     def _create(self) -> list[estimators.Estimator]:
         # The estimators turn their magnetic-north attitude to true north themselves.
-        return [s.create(self.rate_hz, declination=self.declination_rad,
-                         **model_defaults(s, self.model)) for s in self.specs]
+        created = [s.create(self.rate_hz, declination=self.declination_rad,
+                            **model_defaults(s, self.model)) for s in self.specs]
+        for est in created:
+            est.set_flight_state(self.airborne)
+        return created
+
+    def set_flight_state(self, airborne: bool | None) -> None:
+        """The vehicle's flight state from the next sample on (eskf's drag model runs
+        only while it is airborne; None: the estimator decides from the data)."""
+        self.airborne = airborne
+        for est in self.estimators:
+            est.set_flight_state(airborne)
+
+    def air_models(self) -> dict[str, bool]:
+        """Per estimator: whether its last sample ran the in-flight model."""
+        return {label: est.air_model for label, est in zip(self.labels, self.estimators,
+                                                            strict=True)}
 
     def set_declination(self, declination_rad: float) -> None:
         """Report true north with another declination from now on, estimate kept."""
@@ -192,13 +209,21 @@ class Pipeline:
                 src.set_declination(setup.declination_rad)
             src.set_model(setup.model)
 
+    def set_flight_state(self, sysid: int, airborne: bool | None) -> None:
+        """Tell a vehicle's estimators (present and future) whether it flies."""
+        self.setup(sysid).airborne = airborne
+        for key, src in self.sources.items():
+            if key.sysid == sysid:
+                src.set_flight_state(airborne)
+
     def process(self, sample: ImuSample, vel: np.ndarray | None = None,
                 vel_age: float = 0.0) -> Estimate:
         src = self.sources.get(sample.key)
         if src is None:
             setup = self.setup(sample.key.sysid)
             src = SourcePipeline(sample.key, self.specs, self.rate_hz, self.history,
-                                 setup.declination_rad, self.settle_s, setup.model)
+                                 setup.declination_rad, self.settle_s, setup.model,
+                                 setup.airborne)
             self.sources[sample.key] = src
         return src.process(sample, vel, vel_age)
 

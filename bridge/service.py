@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from imu.boards import board_profile
+from imu.flight_state import state_name
 from imu.rotations import rotation_matrix
 
 from .admission import Admission
@@ -70,6 +71,8 @@ ID_ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
 ID_ATTITUDE_QUATERNION = mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
 ID_COMMAND_ACK = mavlink.MAVLINK_MSG_ID_COMMAND_ACK
 ID_SYSTEM_TIME = mavlink.MAVLINK_MSG_ID_SYSTEM_TIME
+ID_EXTENDED_SYS_STATE = mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE
+FLIGHT_SWITCHES_SHOWN = 10  # the status report lists this many of the latest switches
 ID_RAW_IMU = mavlink.MAVLINK_MSG_ID_RAW_IMU
 ID_PARAM_VALUE = mavlink.MAVLINK_MSG_ID_PARAM_VALUE
 ID_GLOBAL_POSITION_INT = mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT
@@ -427,6 +430,23 @@ class BridgeService:
                 vehicle.boot_hint = (msg.time_boot_ms * 1e-3, arrival)
         elif msg_id == ID_COMMAND_ACK:
             self._command_ack(vehicle, msg, compid)
+        elif msg_id == ID_EXTENDED_SYS_STATE:
+            if compid != vehicle.autopilot_compid:
+                vehicle.refused["other_component"] += 1
+                return
+            vehicle.flight.on_extended_sys_state(now, msg.landed_state)
+            self._flight_state(vehicle)
+
+    def _flight_state(self, vehicle: Vehicle) -> None:
+        """Pass a change of the vehicle's flight state on to its estimators."""
+        airborne = vehicle.flight.airborne
+        if self.pipeline.setup(vehicle.sysid).airborne is not airborne:
+            self.pipeline.set_flight_state(vehicle.sysid, airborne)
+            src = self.pipeline.sources.get(vehicle.primary) if vehicle.primary else None
+            last = src.last_sample.t if src is not None and src.last_sample else None
+            # board time of the last sample before the switch: a replay of the same
+            # samples can apply it at the same place
+            vehicle.flight_board_switches.append((last, airborne))
 
     def _heartbeat(self, vehicle: Vehicle, msg: MAVLinkMessage, compid: int, link: Link,
                    now: float) -> None:
@@ -447,6 +467,8 @@ class BridgeService:
             return
         vehicle.heartbeats += 1
         vehicle.last_heartbeat = now
+        vehicle.flight.on_heartbeat(now, msg.base_mode, msg.autopilot)
+        self._flight_state(vehicle)
         if msg.type != vehicle.mav_type:
             if vehicle.mav_type is not None:
                 log.warning("vehicle %d: heartbeat type changed from %s to %s", vehicle.sysid,
@@ -697,7 +719,21 @@ class BridgeService:
             "vehicle": self._vehicle_description(vehicle),
             "aiding": {**vehicle.aiding.status(), "enabled": self.cfg.aiding,
                        "aided_samples": src.aided if src is not None else 0},
+            "flight_state": self._flight_status(vehicle, src),
         }
+
+    @staticmethod
+    def _flight_status(vehicle: Vehicle, src: Any) -> dict[str, Any]:
+        """The vehicle's flight state, where it came from, its last switches (seconds
+        ago) and, per estimator, whether its in-flight model (eskf's drag) is running."""
+        now = time.monotonic()
+        recent = list(vehicle.flight.switches)[-FLIGHT_SWITCHES_SHOWN:]
+        return {**vehicle.flight.status(),
+                "recent_switches": [{"s_ago": round(now - s.t, 1),
+                                     "state": state_name(s.airborne), "source": s.source}
+                                    for s in recent],
+                "air_model": src.air_models() if src is not None else {},
+                "board_switches": [[t, state_name(a)] for t, a in vehicle.flight_board_switches]}
 
     def _vehicle_description(self, vehicle: Vehicle) -> dict[str, Any]:
         """What the heartbeat says the vehicle is, and what that made of the estimators."""

@@ -137,7 +137,22 @@ def vehicle_lines(sysid: int, st: dict[str, Any]) -> list[str]:
         aid = "no velocity aiding (none received)"
     decl = (f"       declination {d.get('deg', 0.0):+.2f}° ({d.get('source', 'none')}"
             f"{': ' + d['detail'] if d.get('detail') else ''}), {aid}")
-    return [line, imu, decl]
+    return [line, imu, decl, flight_text(st.get("flight_state"))]
+
+
+def flight_text(f: dict[str, Any] | None) -> str:
+    """The flight state line: state (source), switches, and which estimators run their
+    in-flight model (eskf's rotor drag) now."""
+    if not f:
+        return "       flight state unknown"
+    text = f"       flight: {f['state']} ({f['source']}), {f['switches']} switch(es)"
+    if f.get("recent_switches"):
+        last = f["recent_switches"][-1]
+        text += f", last {last['s_ago']:.0f} s ago to {last['state']}"
+    if f.get("flap_fallbacks"):
+        text += f", landed state unreliable {f['flap_fallbacks']}x"
+    air = [k for k, on in f.get("air_model", {}).items() if on]
+    return text + (f"; in-flight model: {', '.join(air)}" if air else "; no in-flight model")
 
 
 class LiveTable:

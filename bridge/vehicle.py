@@ -26,8 +26,11 @@ is (autopilot, MAV_TYPE: the vehicle model), its velocity for aiding
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
+
+from imu.flight_state import FlightStateTracker
 
 from .aiding import VelocityAiding
 from .compare import References
@@ -72,10 +75,18 @@ class Vehicle:
     declination: Declination = field(default_factory=lambda: Declination(0))
     negotiation: StreamNegotiation = field(  # the service gives each its settings
         default_factory=lambda: StreamNegotiation(0, 250.0))
+    #: armed / landed state from its own HEARTBEAT and EXTENDED_SYS_STATE (imu.flight_state)
+    flight: FlightStateTracker = field(default_factory=FlightStateTracker)
+    #: (board time of the last sample before it or None, airborne) of each switch given
+    #: to the estimators
+    flight_board_switches: deque = field(default_factory=lambda: deque(maxlen=64))
     sequences: dict[int, SequenceTracker] = field(default_factory=dict)
     next_mqtt_t: dict[Any, float] = field(default_factory=dict)
     samples_at_last_status: int = 0
     refused: dict[str, int] = field(default_factory=lambda: dict.fromkeys(REFUSALS, 0))
+
+    def __post_init__(self) -> None:
+        self.flight.label = f"vehicle {self.sysid}"
 
     def references(self) -> References:
         """The comparison references, created on first use (they are the bulk of the

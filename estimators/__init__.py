@@ -31,18 +31,21 @@ def create(name: str, rate_hz: float = 1000.0, world: str = "NED",
 def run(name: str, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None = None,
         rate_hz: float = 1000.0, world: str = "NED", q0: np.ndarray | None = None,
         dt: float | np.ndarray | None = None, *, vel: np.ndarray | None = None,
-        vel_age: float | np.ndarray | None = None, **params: float) -> BatchResult:
+        vel_age: float | np.ndarray | None = None, airborne: np.ndarray | None = None,
+        **params: float) -> BatchResult:
     """Batch run returning quaternions, bias estimates and per-sample flags.
 
-    ``vel``/``vel_age``: optional velocity aiding, see ``Estimator.update``."""
+    ``vel``/``vel_age``: optional velocity aiding, see ``Estimator.update``;
+    ``airborne``: the vehicle's flight state per sample, see ``Estimator.run``."""
     return create(name, rate_hz=rate_hz, world=world, q0=q0, **params).run(
-        gyr, acc, mag, dt, vel=vel, vel_age=vel_age)
+        gyr, acc, mag, dt, vel=vel, vel_age=vel_age, airborne=airborne)
 
 
 def batch(name: str, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None = None,
           rate_hz: float = 1000.0, world: str = "NED", q0: np.ndarray | None = None,
           dt: float | np.ndarray | None = None, *, vel: np.ndarray | None = None,
-          vel_age: float | np.ndarray | None = None, **params: float) -> np.ndarray:
+          vel_age: float | np.ndarray | None = None, airborne: np.ndarray | None = None,
+          **params: float) -> np.ndarray:
     """(N, 4) quaternions, identical to calling ``update`` per sample, in a compiled loop."""
     return run(name, gyr, acc, mag, rate_hz=rate_hz, world=world, q0=q0, dt=dt, vel=vel,
-               vel_age=vel_age, **params).q
+               vel_age=vel_age, airborne=airborne, **params).q

@@ -171,4 +171,5 @@ class FlightStateTracker:
                 "armed": self.armed,
                 "landed_state": None if self.landed_state is None
                 else LANDED_NAMES.get(self.landed_state, str(self.landed_state)),
-                "switches": len(self.switches), "flap_fallbacks": self.flap_fallbacks}
+                "reports": self.reports, "switches": len(self.switches),
+                "flap_fallbacks": self.flap_fallbacks}

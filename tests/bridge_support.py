@@ -265,3 +265,15 @@ async def stream_emulator(bridge, cfg, out_port: int, share: float = 1.0):
                      timeout=10.0)
     await asyncio.sleep(0.3)
     return stats
+
+
+def airborne_per_sample(status: dict, t_board: np.ndarray) -> np.ndarray:
+    """The flight state the bridge gave its estimators at each board time (1 / 0 / NaN),
+    from its status's ``flight_state.board_switches``: a switch applies from the sample
+    after the board time it names (None: before the first sample)."""
+    out = np.full(len(t_board), np.nan)
+    for t_switch, state in status["flight_state"]["board_switches"]:
+        value = {"airborne": 1.0, "on ground": 0.0}.get(state, np.nan)
+        start = 0 if t_switch is None else int(np.searchsorted(t_board, t_switch, "right"))
+        out[start:] = value
+    return out

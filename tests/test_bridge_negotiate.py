@@ -59,7 +59,9 @@ async def test_px4_ends_on_highres_imu_at_the_asked_rate_without_a_flag(caplog):
     # The velocity streams were asked for too, after the IMU, and accepted.
     assert stream["aiding_streams"] == {"LOCAL_POSITION_NED": "MAV_RESULT_ACCEPTED",
                                         "GPS_RAW_INT": "MAV_RESULT_ACCEPTED"}
-    assert stats.requests.interval_accepted == 3 and stats.requests.interval_refused == 0
+    # IMU, two velocity streams and the landed state (EXTENDED_SYS_STATE)
+    assert stream["flight_state_stream"] == "MAV_RESULT_ACCEPTED"
+    assert stats.requests.interval_accepted == 4 and stats.requests.interval_refused == 0
     # The emulator really streamed at 250 Hz after the request (50 Hz before it).
     assert stats.messages["HIGHRES_IMU"] > 0.8 * IMU_RATE * 6.0
 

@@ -215,6 +215,10 @@ def heartbeat(mav_type: int) -> mavlink.MAVLink_message:
 @pytest.mark.parametrize(("mav_type", "spec", "drag"), [
     (mavlink.MAV_TYPE_HEXAROTOR, "eskf", MULTIROTOR_DRAG_PER_S),
     (mavlink.MAV_TYPE_FIXED_WING, "eskf", 0.0),
+    # a single rotor hovers with a lateral force; a VTOL's wing carries it in cruise
+    (mavlink.MAV_TYPE_HELICOPTER, "eskf", 0.0),
+    (mavlink.MAV_TYPE_COAXIAL, "eskf", 0.0),
+    (mavlink.MAV_TYPE_VTOL_QUADROTOR, "eskf", 0.0),
     (mavlink.MAV_TYPE_QUADROTOR, "eskf:drag=0", 0.0),  # the user's setting wins
 ])
 @async_test
@@ -231,7 +235,7 @@ async def test_heartbeat_type_sets_the_drag_model(mav_type, spec, drag):
         bridge.publish_status()
         described = bridge.last_status[1]["vehicle"]
         vehicle.close()
-    multirotor = mav_type != mavlink.MAV_TYPE_FIXED_WING
+    multirotor = mav_type in (mavlink.MAV_TYPE_HEXAROTOR, mavlink.MAV_TYPE_QUADROTOR)
     assert described["model"] == ("multirotor" if multirotor else "other")
     assert described["estimators"]["mahony"] == "-"
     assert described["estimators"][src.labels[0]] == (

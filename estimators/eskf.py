@@ -144,9 +144,10 @@ class EskfParams(CommonParams):
                                            "speed now)")
     velocity_reset_time: float = param(3.0, "velocity re-anchored after this long [s] of "
                                             "rejected velocity information")
-    vel_aid_noise: float = param(0.8, "velocity aiding measurement noise [m/s] (GPS or the "
-                                      "autopilot's estimate: their errors are correlated "
-                                      "over seconds, so more than the white noise)")
+    vel_aid_noise: float = param(0.8, "velocity aiding noise per measurement [m/s], used "
+                                      "only with aid_density=0 (GPS or the autopilot's "
+                                      "estimate: their errors are correlated over "
+                                      "seconds, so more than the white noise)")
     drag: float = param(0.0, "multirotor rotor-drag model: initial drag coefficient "
                              "μ [1/s] (f_xy = −μ·v_body,xy); 0 = not a multirotor")
     drag_sigma_init: float = param(0.5, "initial standard deviation of μ [1/s]")

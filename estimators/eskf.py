@@ -60,10 +60,11 @@ the velocity information), the bias random walk and a velocity random walk.
 * *Rest* (VQF's rest detector and thresholds: gyro and accelerometer within
   ``rest_gyr_th``/``rest_acc_th`` of their low-pass for ``rest_time``, and the low-passed
   gyro within ``rest_bias_th`` of the bias estimate, so that a steady turn is not rest):
-  the low-passed gyro measures the bias, and, unaided, the mean specific force measures
-  the tilt (with aiding the measured velocity tells a sustained acceleration, which is
-  just as steady, from rest). Not the velocity: a multirotor cruising at constant
-  speed is exactly as steady as one standing on the ground.
+  the low-passed gyro measures the bias, and, unaided or while the drag model runs, the
+  mean specific force measures the tilt (otherwise the measured velocity tells a
+  sustained acceleration, which is just as steady, from rest). Not the velocity: a
+  multirotor cruising at constant speed is exactly as steady as one standing on the
+  ground.
 * *Magnetometer, heading only*: the heading of the field rotated into the world frame
   is a measurement of ``δθ_z``; its gain on ``δθ_x, δθ_y`` is zeroed (Joseph form keeps
   ``P`` consistent), so a disturbed field cannot tilt the estimate, while the bias
@@ -816,9 +817,10 @@ def _rest_update(state: np.ndarray, params: np.ndarray, T: float, aided: bool) -
     the mean specific force is gravity: a tilt measurement (rest holds only while the
     specific force is steady, and a multirotor's changes with its speed through rotor
     drag, so a steady cruise qualifies too — it is not accelerating either; a vehicle
-    with aiding leaves this to its measured velocity: a steady specific force is also what
-    a sustained acceleration gives). Not a zero-velocity update: that cruise is not
-    standing still."""
+    with aiding leaves this to its measured velocity — a steady specific force is also what
+    a sustained acceleration gives — unless the drag model runs: a flying multirotor's
+    specific force changes with its speed, so steady means not accelerating). Not a
+    zero-velocity update: that cruise is not standing still."""
     _clear_rows(state, 3)
     for i in range(3):
         state[_H + i * _NX + _BI + i] = 1.0
@@ -901,7 +903,7 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
     at_rest = state[_REST_T] >= params[_P_REST_T]
     drag = _drag_model_on(state, params, T, r)
     if at_rest:
-        _rest_update(state, params, T, aided)
+        _rest_update(state, params, T, aided and not drag)
         r = _rotation(state)
     else:
         state[_REST_ANCHORED] = 0.0

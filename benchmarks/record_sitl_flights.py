@@ -31,15 +31,22 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from sitl_flight import LANDED, Leg, Link, Sitl, fly_legs, mav, mavutil
+from hil.sitl import LANDED, Leg, Link, Sitl, mav, mavutil
+from hil.sitl_pilot import (
+    FlightError,
+    ap_guided,
+    ap_land,
+    ap_ready,
+    ap_takeoff,
+    log,
+    px4_land,
+    px4_offboard,
+    px4_ready,
+    px4_takeoff,
+    set_rates,
+)
 
 REPO = Path(__file__).resolve().parents[1]
-NAN = float("nan")
-ON_GROUND, IN_AIR = 1, 2
-PX4_OFFBOARD = 6  # PX4 custom main mode
-AP_GUIDED, AP_LAND = 4, 9  # ArduCopter custom modes
 
 # Message -> requested rate (Hz). The keys are also the only messages written to the tlog,
 # plus COMMAND_ACK, STATUSTEXT (as they come) and the COMMAND_LONGs this script sends.
@@ -93,115 +100,6 @@ FLIGHTS = {
         Sortie([Leg(4, 4, 45), Leg(4, 4, 225, yaw=60), Leg(3)], ground_after=5),
     ]),
 }
-
-
-class FlightError(RuntimeError):
-    pass
-
-
-def log(msg: str) -> None:
-    print(msg, flush=True)
-
-
-def require(ok: bool, what: str) -> None:
-    if not ok:
-        raise FlightError(what)
-
-
-# --------------------------------------------------------------------------- common steps
-def set_rates(link: Link, rates: dict[str, float]) -> None:
-    for name, hz in rates.items():
-        if name == "HEARTBEAT":
-            continue
-        result = link.set_rate(getattr(mav, f"MAVLINK_MSG_ID_{name}"), hz)
-        if result != 0:
-            log(f"  note: SET_MESSAGE_INTERVAL {name} {hz:g} Hz -> result {result}")
-
-
-def wait_landed_and_disarmed(link: Link, timeout: float = 60.0) -> None:
-    require(link.wait_for(lambda: link.landed == ON_GROUND, timeout), "never landed")
-    t_landed = time.time()
-    require(link.wait_for(lambda: link.armed is False, 20.0), "did not disarm after landing")
-    log(f"  landed; disarmed {time.time() - t_landed:.1f} s later")
-
-
-def wait_climb(link: Link, alt: float, timeout: float = 30.0) -> None:
-    require(link.wait_for(lambda: link.pos is not None and link.pos[2] < -0.9 * alt, timeout),
-            f"did not climb to {alt} m")
-
-
-def arm(link: Link, timeout: float = 60.0) -> None:
-    deadline = time.time() + timeout
-    while time.time() < deadline:
-        if link.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1, retries=2) == 0:
-            require(link.wait_for(lambda: link.armed, 5.0), "arm accepted but not armed")
-            return
-        time.sleep(1.0)
-    raise FlightError("arming refused: " + "; ".join(t for _, t in link.statustext[-3:]))
-
-
-# --------------------------------------------------------------------------- PX4
-def px4_takeoff(link: Link, alt: float) -> None:
-    require(link.command(mav.MAV_CMD_NAV_TAKEOFF, NAN, 0, 0, NAN, NAN, NAN, NAN) == 0,
-            "NAV_TAKEOFF refused")
-    arm(link)
-    wait_climb(link, alt)
-    time.sleep(1.5)
-
-
-def px4_offboard(link: Link, legs: list[Leg], alt: float) -> None:
-    fly_legs(link, [Leg(1.0)], -alt)  # set-points must stream before the switch
-    require(link.command(mav.MAV_CMD_DO_SET_MODE, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-                         PX4_OFFBOARD) == 0, "offboard refused")
-    fly_legs(link, legs, -alt)
-
-
-def px4_land(link: Link) -> None:
-    require(link.command(mav.MAV_CMD_NAV_LAND, NAN, 0, 0, NAN, NAN, NAN, NAN) == 0,
-            "NAV_LAND refused")
-    wait_landed_and_disarmed(link)
-
-
-def px4_ready(link: Link, timeout: float = 60.0) -> None:
-    require(link.wait_for(lambda: link.fix >= 3 and link.lat != 0, timeout), "no GPS position")
-    time.sleep(5.0)
-
-
-# --------------------------------------------------------------------------- ArduPilot
-def ap_mode(link: Link, mode: int) -> None:
-    require(link.command(mav.MAV_CMD_DO_SET_MODE, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-                         mode) == 0, f"mode {mode} refused")
-
-
-def ap_takeoff(link: Link, alt: float) -> None:
-    ap_mode(link, AP_GUIDED)
-    for _ in range(5):
-        arm(link)
-        if link.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, alt) == 0:
-            break
-        time.sleep(1.0)
-    else:
-        raise FlightError("takeoff refused")
-    wait_climb(link, alt)
-    time.sleep(1.5)
-
-
-def ap_guided(link: Link, legs: list[Leg], alt: float) -> None:
-    fly_legs(link, legs, -alt)
-
-
-def ap_land(link: Link) -> None:
-    ap_mode(link, AP_LAND)
-    wait_landed_and_disarmed(link)
-
-
-def ap_ready(link: Link, timeout: float = 120.0) -> None:
-    # LOCAL_POSITION_NED only flows once the EKF has its GPS origin and position.
-    require(link.wait_for(lambda: link.fix >= 3 and link.pos is not None, timeout),
-            "no GPS fix / EKF position")
-    require(link.wait_for(lambda: any("using GPS" in t for _, t in link.statustext), 30.0),
-            "EKF not using GPS")
-    time.sleep(3.0)
 
 
 # --------------------------------------------------------------------------- one flight

@@ -16,9 +16,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 import os
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 # Modules providing sub-commands, in the order `--help` lists them.
 SUBCOMMAND_MODULES: tuple[str, ...] = (
@@ -64,8 +66,37 @@ class _Version(argparse.Action):
         parser.exit()
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line, like every other input error.
+
+    argparse prints the whole usage before the message: dozens of lines for ``run``,
+    which bury the one that says what is wrong. Sub-command parsers inherit the class.
+    """
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def seconds(text: str) -> float:
+    """argparse type of a duration, timeout or age: finite seconds, >= 0.
+
+    ``float`` alone takes "nan", "inf" and "-5": ``hil --duration nan`` then streamed
+    for ever (NaN > 0 is false, which reads as "no limit") and ``health --max-age nan``
+    called any status file fresh. Whether 0 is allowed is the option's own business.
+    """
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") \
+            from None
+    if not math.isfinite(value) or value < 0.0:
+        raise argparse.ArgumentTypeError(
+            f"must be a finite number of seconds >= 0, got {text!r}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="attitude-bridge",
         description="MAVLink companion and HIL bridge for quadrotor attitude estimation.")
     parser.add_argument("--version", action=_Version)

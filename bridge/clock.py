@@ -289,3 +289,36 @@ class SampleClock:
         if kind == REBOOT:
             self.period_ticks = None
         return Verdict(kind, accepted, reclassified, gap_s=gap)
+
+
+class ArrivalClock:
+    """Board time for a message that carries none (ArduPilot's SIMSTATE) or a zero one
+    (PX4 SIH's HIL_STATE_QUATERNION), from when it arrived.
+
+    Every sample of the vehicle's IMU stream pairs a board time with an arrival time;
+    ``board - arrival`` is the clock offset minus that sample's transport delay, so the
+    largest value over the last ``window_s`` is the offset of the least delayed sample,
+    and a message sent along the same link maps to about the board time it was sent at.
+    The window lets the offset follow a drifting clock and a new timeline (a reboot)."""
+
+    def __init__(self, window_s: float = 2.0) -> None:
+        self.window_s = window_s
+        self._offsets: deque[tuple[float, float]] = deque()  # (arrival, offset), max first
+
+    def observe(self, board_t: float, arrival: float) -> None:
+        offset = board_t - arrival
+        q = self._offsets
+        while q and q[-1][1] <= offset:
+            q.pop()  # never again the maximum: a later sample has a larger offset
+        q.append((arrival, offset))
+        while q[0][0] < arrival - self.window_s:
+            q.popleft()
+
+    def reset(self) -> None:
+        self._offsets.clear()
+
+    def board_time(self, arrival: float) -> float | None:
+        """Board time of a message that arrived at ``arrival`` (None before any sample)."""
+        if not self._offsets:
+            return None
+        return arrival + self._offsets[0][1]

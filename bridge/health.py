@@ -19,6 +19,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from .cli import seconds
+
 STATUS_FILE_ENV = "ATTITUDE_BRIDGE_STATUS_FILE"
 EXIT_HEALTHY, EXIT_UNHEALTHY = 0, 1
 
@@ -67,7 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--status-file", type=Path, default=os.environ.get(STATUS_FILE_ENV),
                    metavar="PATH", help=f"the bridge's --status-file (default: "
                                         f"${STATUS_FILE_ENV})")
-    p.add_argument("--max-age", type=float, default=5.0, metavar="S",
+    p.add_argument("--max-age", type=seconds, default=5.0, metavar="S",
                    help="older than this is unhealthy (default 5)")
     p.add_argument("--need-input", action="store_true",
                    help="unhealthy unless a vehicle's IMU data is coming in")

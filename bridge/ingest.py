@@ -323,7 +323,8 @@ class Ingest:
         # Noise makes a 6-axis raw reading repeated for milliseconds practically
         # impossible: the sensor (or its driver) re-sends old data. Once a run of repeats
         # lasts STUCK_MIN_US, all of its repeats count (those before it, at once).
-        if raw == src.last_raw:
+        # (Rounded units, ArduPilot's, repeat honestly at rest: no such test.)
+        if p.sensor_counts and raw == src.last_raw:
             src.repeats += 1
             if src.stuck:
                 flags += ("stuck",)

@@ -6,7 +6,10 @@ message to ``on_message(msg, link)`` (``link.last_addr`` says who sent it);
 costs a counted drop, never a stalled loop). TCP and serial links reconnect by
 themselves with exponential backoff, reset after a session that delivered messages,
 and give up on a connection that delivers no valid message for ``idle_timeout_s``
-(a peer that went silent, or stopped reading and let our output back up).
+(a peer that went silent, or stopped reading and let our output back up). What no
+retry can fix fails at start instead (:class:`LinkError`): a host name that does not
+resolve, a serial device that does not exist. A peer that refuses (an autopilot still
+booting) is retried; each reason is logged once at WARNING, its repeats at DEBUG.
 
 A UDP ``udpin`` link answers only peers it has heard speak valid (and, with signing,
 verified) MAVLink: one byte from a spoofed address earns nothing. The peer table is
@@ -61,7 +64,8 @@ Gate = Callable[[bytes], bool]
 
 class LinkError(OSError):
     """A link that cannot be opened at all (a host that does not resolve, a port in use,
-    an address not on this machine): a setting to fix, reported as one line."""
+    an address not on this machine, a serial device that does not exist): a setting to
+    fix, reported as one line."""
 
 
 #: What a failed bind means, in words a user can act on.
@@ -222,6 +226,20 @@ class Link:
     def _heard(self, addr: tuple) -> None:
         """A peer at ``addr`` spoke valid MAVLink (datagram links only)."""
 
+    async def _resolve(self, family: int, kind: int) -> tuple[str, int]:
+        """The URL's first address; LinkError when the host name does not resolve.
+
+        A name that does not resolve at start is a typo, not a peer that is still
+        booting: retrying would hide it forever.
+        """
+        try:
+            infos = await asyncio.get_running_loop().getaddrinfo(
+                self.url.host, self.url.port, family=family, type=kind)
+        except OSError as exc:  # socket.gaierror
+            raise LinkError(f"{self.name}: cannot resolve host {self.url.host!r} "
+                            f"({exc.strerror or exc})") from None
+        return infos[0][4][:2]
+
 
 class UdpLink(Link):
     """``udpin`` listens and answers the peers it heard valid MAVLink from in the last
@@ -285,14 +303,7 @@ class UdpLink(Link):
 
     async def start(self) -> None:
         """Resolve and bind; LinkError saying why when that is impossible."""
-        loop = asyncio.get_running_loop()
-        try:
-            infos = await loop.getaddrinfo(self.url.host, self.url.port,
-                                           family=socket.AF_INET, type=socket.SOCK_DGRAM)
-        except OSError as exc:  # socket.gaierror
-            raise LinkError(f"{self.name}: cannot resolve host {self.url.host!r} "
-                            f"({exc.strerror or exc})") from None
-        address = infos[0][4][:2]
+        address = await self._resolve(socket.AF_INET, socket.SOCK_DGRAM)
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.setblocking(False)
         with contextlib.suppress(OSError):  # absorb bursts (e.g. a GC pause at 8 kHz)
@@ -309,7 +320,7 @@ class UdpLink(Link):
             raise LinkError(f"{self.name}: cannot open {address[0]}:{address[1]}: "
                             f"{reason}") from None
         self._sock = sock
-        loop.add_reader(sock.fileno(), self._readable)
+        asyncio.get_running_loop().add_reader(sock.fileno(), self._readable)
 
     async def close(self) -> None:
         sock, self._sock = self._sock, None
@@ -403,9 +414,33 @@ class _StreamLink(Link):
         self._task: asyncio.Task | None = None
         self._closing = False
         self._session_start = 0.0
+        self._last_warned: str | None = None  # failure already told at WARNING
 
     async def start(self) -> None:
+        """Check what can be wrong for good (LinkError), then connect in the background:
+        a peer that is not up yet is retried with backoff."""
+        await self._check()
         self._task = asyncio.create_task(self._run(), name=f"link {self.name}")
+
+    async def _check(self) -> None:
+        """Raise LinkError for a setting that no retry can fix."""
+
+    def _describe_failure(self, exc: Exception) -> str:
+        """Why a connection attempt or session ended, in words a user can act on."""
+        return str(exc) or type(exc).__name__
+
+    def _report_failure(self, reason: str, backoff: float) -> None:
+        """WARNING once per reason, DEBUG for its repeats until a session works again.
+
+        An autopilot that is still booting refuses every attempt for a while: one line
+        says so (and that we keep trying); a warning per attempt would bury the rest.
+        """
+        if reason == self._last_warned:
+            log.debug("%s: %s; retrying in %g s", self.name, reason, backoff)
+            return
+        self._last_warned = reason
+        log.warning("%s: %s; retrying in %g s, then with backoff up to %g s (repeats "
+                    "are logged at DEBUG)", self.name, reason, backoff, BACKOFF_MAX_S)
 
     async def close(self) -> None:
         self._closing = True
@@ -424,9 +459,10 @@ class _StreamLink(Link):
             except asyncio.CancelledError:
                 raise
             except Exception as exc:
-                log.warning("%s: %s; retrying in %.1f s", self.name, exc, backoff)
+                self._report_failure(self._describe_failure(exc), backoff)
             if self.last_receive > self._session_start:
                 backoff = BACKOFF_START_S  # it worked: retry promptly
+                self._last_warned = None  # and say so again if it fails again
             self._disconnect()
             if self._closing:
                 break
@@ -467,6 +503,17 @@ class TcpLink(_StreamLink):
     @property
     def connected(self) -> bool:
         return self._writer is not None and not self._writer.is_closing()
+
+    async def _check(self) -> None:
+        await self._resolve(socket.AF_UNSPEC, socket.SOCK_STREAM)
+
+    def _describe_failure(self, exc: Exception) -> str:
+        peer = f"{self.url.host}:{self.url.port}"
+        if isinstance(exc, ConnectionRefusedError):
+            return f"connection refused by {peer}"
+        if isinstance(exc, TimeoutError):
+            return f"no answer from {peer}"
+        return super()._describe_failure(exc)
 
     async def _session(self) -> None:
         reader, self._writer = await asyncio.wait_for(
@@ -542,6 +589,13 @@ class SerialLink(_StreamLink):
     @property
     def connected(self) -> bool:
         return self._port is not None
+
+    async def _check(self) -> None:
+        """A device path that does not exist at start is a typo (a device unplugged
+        later is retried). Names that are not paths (COM3) are left to the driver."""
+        device = self.url.device
+        if "/" in device and not os.path.exists(device):
+            raise LinkError(f"{self.name}: no such serial device {device!r}")
 
     async def _session(self) -> None:
         import serial  # pyserial; imported here so UDP-only use does not need it

@@ -1,4 +1,5 @@
-"""The one place that imports pymavlink: MAVLink 2, the `common` dialect.
+"""The one place that imports pymavlink: MAVLink 2, the `ardupilotmega` dialect (all of
+`common`, plus ArduPilot's own messages: SIMSTATE is its simulator's true attitude).
 
 pymavlink picks MAVLink 1 or 2 from the MAVLINK20 environment variable at import time,
 so it must be set before the first import anywhere in the process.
@@ -10,7 +11,7 @@ import os
 
 os.environ["MAVLINK20"] = "1"
 
-from pymavlink.dialects.v20 import common as mavlink
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 MAVLink = mavlink.MAVLink
 MAVLinkMessage = mavlink.MAVLink_message

@@ -17,17 +17,28 @@ candidate is asked for with MAV_CMD_SET_MESSAGE_INTERVAL at ``--imu-rate``, one 
 at a time (a COMMAND_ACK does not say which message it answers): ACCEPTED settles it,
 a refusal (FAILED, DENIED, UNSUPPORTED) is logged at WARNING and the next candidate is
 asked, no answer after ``MAX_TRIES`` tries ``ACK_TIMEOUT_S`` apart is logged and the
-bridge uses whatever the vehicle streams. The achieved rate is measured on the
-stream's own time stamps (the median step, so a fast-forwarded replay measures the
-same as a live link), and a rate below ``RATE_SHORTFALL`` of the request is logged at
-WARNING once it has held for ``RATE_JUDGED_AFTER_S`` of samples.
+bridge uses whatever the vehicle streams. ArduPilot's DENIED means something else: the
+interval is shorter than its main loop allows (1.25 loop periods; it keeps intervals in
+whole milliseconds), so the same message is asked again at the next whole-millisecond
+interval, down to ``MIN_IMU_RATE_HZ``, before another message is tried.
+
+The achieved rate is the mean rate on the stream's own time stamps (so a fast-forwarded
+replay measures the same as a live link) over the last ``_RATE_STEPS`` steps; the
+spread of the steps is reported beside it as jitter. ArduPilot sends its 333 Hz RAW_IMU
+in uneven 2.5 ms / 5 ms steps: the median step would say 400 or 200 Hz. A rate below
+``RATE_SHORTFALL`` of the request is logged at WARNING once it has held for
+``RATE_JUDGED_AFTER_S`` of samples.
 
 For PX4 and ArduPilot the velocity streams for aiding (:mod:`bridge.aiding`) are asked
 for too, after the IMU: LOCAL_POSITION_NED at 50 Hz and GPS_RAW_INT at 10 Hz; their
 refusal is only noted (other sources may still come). Every vehicle is then asked for
 EXTENDED_SYS_STATE at ``FLIGHT_STATE_HZ``: its landed state decides when the flight-only
 models run (:mod:`imu.flight_state`); refused or unanswered, the estimator decides from
-the data, which is noted in the log.
+the data, which is noted in the log. Last, PX4 and ArduPilot are asked for the
+references of the live comparison (``REFERENCE_STREAMS``): their own attitude
+(ATTITUDE_QUATERNION) and, in a simulator, its true attitude (PX4 SIH:
+HIL_STATE_QUATERNION, ArduPilot SITL: SIMSTATE). A real vehicle has no simulator: the
+refusal (or silence) only means there is no truth to compare with.
 """
 
 from __future__ import annotations
@@ -57,6 +68,19 @@ AIDING_STREAMS = (("LOCAL_POSITION_NED", 50.0), ("GPS_RAW_INT", 10.0))
 #: switch the flight state, so a switch follows the vehicle within 0.4 s.
 FLIGHT_STATE_HZ = 5.0
 FLIGHT_STATE_STREAM = "EXTENDED_SYS_STATE"
+#: The live comparison's references asked from autopilots that have them: the autopilot's
+#: own attitude at REFERENCE_HZ, and the simulator's true attitude in SITL at the IMU's
+#: rate (every estimate gets its own truth; a real vehicle sends none whatever is asked).
+REFERENCE_HZ = 50.0
+REFERENCE_STREAMS = {
+    PX4: ("ATTITUDE_QUATERNION", "HIL_STATE_QUATERNION"),
+    ARDUPILOT: ("ATTITUDE_QUATERNION", "SIMSTATE"),
+}
+TRUTH_STREAMS = frozenset(("HIL_STATE_QUATERNION", "SIMSTATE"))
+#: Autopilots whose DENIED answer to SET_MESSAGE_INTERVAL means "interval too short".
+DENIED_MEANS_TOO_FAST = frozenset((ARDUPILOT,))
+#: Lowest rate an IMU stream is asked at when stepping down after DENIED [Hz].
+MIN_IMU_RATE_HZ = 50.0
 #: RAW_IMU units by autopilot (the board profile when ``--board`` is not given).
 RAW_IMU_BOARD = {ARDUPILOT: "ardupilot"}
 DEFAULT_BOARD = "gy86"
@@ -66,7 +90,7 @@ MAX_TRIES = 3
 #: Achieved below this fraction of the requested rate: logged as a shortfall.
 RATE_SHORTFALL = 0.9
 RATE_JUDGED_AFTER_S = 1.0  # board time of samples before the rate is judged
-_RATE_STEPS = 64  # median over this many recent time steps
+_RATE_STEPS = 64  # mean rate and jitter over this many recent time steps
 
 ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
 RETRY_LATER = frozenset((mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
@@ -77,8 +101,18 @@ WAITING, ASKING, SETTLED, REFUSED, NO_ANSWER = (
 
 
 def _consequence(name: str) -> str:
-    return (": no landed state, eskf decides from the data when the vehicle flies"
-            if name == FLIGHT_STATE_STREAM else "")
+    if name == FLIGHT_STATE_STREAM:
+        return ": no landed state, eskf decides from the data when the vehicle flies"
+    if name in TRUTH_STREAMS:
+        return ": no simulator truth (a real vehicle), compared with its own attitude only"
+    if name == "ATTITUDE_QUATERNION":
+        return ": compared with its ATTITUDE if it sends one"
+    return ""
+
+
+def next_slower_rate(rate_hz: float) -> float:
+    """The rate of the next whole-millisecond interval longer than ``rate_hz``'s."""
+    return 1000.0 / (math.floor(1000.0 / rate_hz + 1e-9) + 1)
 
 
 def result_name(result: int) -> str:
@@ -139,6 +173,8 @@ class StreamNegotiation:
     refusals: list[str] = field(default_factory=list)
     aiding_results: dict[str, str] = field(default_factory=dict)
     flight_state_result: str | None = None  # the EXTENDED_SYS_STATE request's answer
+    reference_results: dict[str, str] = field(default_factory=dict)
+    imu_rate_hz: float | None = None  # rate the current IMU candidate is asked at
     commands_sent: int = 0
     acks: int = 0
     _steps: deque = field(default_factory=lambda: deque(maxlen=_RATE_STEPS))
@@ -157,6 +193,7 @@ class StreamNegotiation:
         self.queue.clear()
         self.outstanding = None
         self.state = ASKING
+        self.imu_rate_hz = self.rate_hz
         self.queue.append(Request(self.candidates[0], self.rate_hz, imu=True))
 
     @property
@@ -176,7 +213,8 @@ class StreamNegotiation:
         if self.message is None or self.state == REFUSED:
             return
         if self.outstanding is None or not self.outstanding.imu:
-            self.queue.appendleft(Request(self.message, self.rate_hz, imu=True))
+            self.queue.appendleft(Request(self.message, self.imu_rate_hz or self.rate_hz,
+                                          imu=True))
 
     # --- the command exchange --------------------------------------------------------
     def next_send(self, now: float) -> Request | None:
@@ -218,11 +256,20 @@ class StreamNegotiation:
                 log.info("vehicle %d: %s at %g Hz accepted", self.sysid, req.name, req.rate_hz)
             self._settle(SETTLED)
             return
-        self.refusals.append(f"{req.name}: {result_name(result)}")
+        self.refusals.append(f"{req.name} at {req.rate_hz:.4g} Hz: {result_name(result)}")
+        slower = next_slower_rate(req.rate_hz)
+        if result == mavlink.MAV_RESULT_DENIED and self.autopilot in DENIED_MEANS_TOO_FAST \
+                and slower >= MIN_IMU_RATE_HZ:
+            log.warning("vehicle %d denied %s at %.4g Hz (too fast for its main loop); "
+                        "asking for %.4g Hz", self.sysid, req.name, req.rate_hz, slower)
+            self.imu_rate_hz = slower
+            self.queue.appendleft(Request(req.name, slower, imu=True))
+            return
         if self.index + 1 < len(self.candidates):
             self.index += 1
             log.warning("vehicle %d refused %s at %g Hz (%s); asking for %s instead",
                         self.sysid, req.name, req.rate_hz, result_name(result), self.message)
+            self.imu_rate_hz = self.rate_hz
             self.queue.appendleft(Request(self.message, self.rate_hz, imu=True))
         else:
             log.warning("vehicle %d refused %s at %g Hz (%s); no other IMU message to ask "
@@ -245,6 +292,8 @@ class StreamNegotiation:
     def _other_result(self, name: str, result: str) -> None:
         if name == FLIGHT_STATE_STREAM:
             self.flight_state_result = result
+        elif name in REFERENCE_STREAMS.get(self.autopilot, ()):
+            self.reference_results[name] = result
         else:
             self.aiding_results[name] = result
 
@@ -259,6 +308,9 @@ class StreamNegotiation:
             self.queue.extend(Request(name, rate, imu=False) for name, rate in AIDING_STREAMS)
         if first:
             self.queue.append(Request(FLIGHT_STATE_STREAM, FLIGHT_STATE_HZ, imu=False))
+            self.queue.extend(Request(name, self.asked_hz if name in TRUTH_STREAMS
+                                      else REFERENCE_HZ, imu=False)
+                              for name in REFERENCE_STREAMS.get(self.autopilot, ()))
 
     # --- the achieved rate -----------------------------------------------------------
     def observe(self, msg_id: int, t: float) -> None:
@@ -270,7 +322,7 @@ class StreamNegotiation:
             self._judge_from = None
         if self._last_t is not None:
             step = t - self._last_t
-            if step > 0.0:
+            if 0.0 < step < 1.0:  # longer: an outage, not a rate
                 self._steps.append(step)
             elif step < -1.0:  # a new timeline: measure afresh
                 self._steps.clear()
@@ -283,31 +335,48 @@ class StreamNegotiation:
 
     @property
     def achieved_hz(self) -> float | None:
+        """Mean rate over the recent steps (None until there are a few)."""
         if len(self._steps) < 8:
             return None
-        return 1.0 / float(np.median(self._steps))
+        return len(self._steps) / float(sum(self._steps))
+
+    @property
+    def jitter_ms(self) -> float | None:
+        """Standard deviation of the recent time steps [ms]."""
+        if len(self._steps) < 8:
+            return None
+        return 1e3 * float(np.std(self._steps))
 
     def _judge(self) -> None:
         achieved = self.achieved_hz
         if achieved is None:
             return
         name = mavlink.mavlink_map[self._msg_observed].msgname
-        short = achieved < RATE_SHORTFALL * self.rate_hz
+        short = achieved < RATE_SHORTFALL * self.asked_hz
         if short and not self._short:
-            log.warning("vehicle %d: IMU %s at %.0f Hz, below the %g Hz asked", self.sysid,
-                        name, achieved, self.rate_hz)
+            log.warning("vehicle %d: IMU %s at %.0f Hz, below the %.4g Hz asked", self.sysid,
+                        name, achieved, self.asked_hz)
         elif self._short and not short:
             log.info("vehicle %d: IMU %s now at %.0f Hz", self.sysid, name, achieved)
         self._short = short
 
+    @property
+    def asked_hz(self) -> float:
+        """The rate the IMU stream was last asked at (lower than ``--imu-rate`` after
+        ArduPilot denied it)."""
+        return self.imu_rate_hz or self.rate_hz
+
     def status(self) -> dict[str, Any]:
-        achieved = self.achieved_hz
+        achieved, jitter = self.achieved_hz, self.jitter_ms
         using = (mavlink.mavlink_map[self._msg_observed].msgname
                  if self._msg_observed is not None else None)
         return {"message": using, "asked": self.message, "requested_hz": self.rate_hz,
+                "asked_hz": round(self.asked_hz, 2),
                 "achieved_hz": round(achieved, 1) if achieved is not None else None,
+                "jitter_ms": round(jitter, 3) if jitter is not None else None,
                 "state": self.state, "below_request": self._short,
                 "forced": self.forced is not None, "refused": list(self.refusals),
                 "commands": self.commands_sent, "acks": self.acks,
                 "aiding_streams": dict(self.aiding_results),
-                "flight_state_stream": self.flight_state_result}
+                "flight_state_stream": self.flight_state_result,
+                "reference_streams": dict(self.reference_results)}

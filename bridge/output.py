@@ -8,11 +8,12 @@ packet timing; ``out_rate <= 0`` sends every sample.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Sequence
 
 import numpy as np
+
+from estimators import quat as Q
 
 from .ingest import SourceKey
 from .links import Link
@@ -24,13 +25,13 @@ _NO_OFFSET = [1.0, 0.0, 0.0, 0.0]  # repr_offset_q: no display rotation
 
 
 def euler_zyx(q: np.ndarray) -> tuple[float, float, float]:
-    """(roll, pitch, yaw) of a unit quaternion, Z-Y-X, yaw in (-pi, pi] (scalar, fast)."""
-    w, x, y, z = float(q[0]), float(q[1]), float(q[2]), float(q[3])
-    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
-    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    if yaw <= -math.pi:
-        yaw += 2.0 * math.pi
+    """(roll, pitch, yaw) of one quaternion as floats, by :func:`estimators.quat.to_euler`.
+
+    Every Euler angle the bridge publishes (ATTITUDE, MQTT, the table) comes from that
+    one conversion: a second formula disagreed with it near ±90° pitch, where only
+    yaw ∓ roll is defined and the two split it differently (or not at all).
+    """
+    roll, pitch, yaw = Q.to_euler(q).tolist()
     return roll, pitch, yaw
 
 

@@ -19,6 +19,7 @@ from collections.abc import Mapping
 
 import estimators
 
+from .cli import seconds
 from .config import BridgeConfig
 
 log = logging.getLogger(__name__)
@@ -28,7 +29,8 @@ DEMO_ESTIMATORS = ("eskf", "mahony", "madgwick", "kalman")
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--estimator", action="append", dest="estimators", metavar="NAME[:k=v,...]",
+    p.add_argument("--estimator", "-e", action="append", dest="estimators",
+                   metavar="NAME[:k=v,...]",
                    help="estimator to run (repeatable); the first is primary and goes out "
                         "over MAVLink (default: eskf)")
     p.add_argument("--out", action="append", dest="outs", metavar="URL",
@@ -114,7 +116,7 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help="settings file, keys = these options' names, e.g. peer-timeout = 10 "
                         "(default: $ATTITUDE_BRIDGE_CONFIG; the environment and options "
                         "override it)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--duration", type=seconds, metavar="S", help="stop after S seconds")
     p.add_argument("--record", metavar="FILE.tlog",
                    help="record every MAVLink frame of the connection, in and out, with "
                         "its time (replay it with `attitude-bridge replay FILE.tlog`)")

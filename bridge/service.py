@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from estimators import quat as Q
 from imu.boards import board_profile
 from imu.flight_state import state_name
 from imu.rotations import rotation_matrix
@@ -67,6 +68,8 @@ log = logging.getLogger(__name__)
 
 ID_HEARTBEAT = mavlink.MAVLINK_MSG_ID_HEARTBEAT
 ID_HIL_STATE_QUATERNION = mavlink.MAVLINK_MSG_ID_HIL_STATE_QUATERNION
+ID_SIMSTATE = mavlink.MAVLINK_MSG_ID_SIMSTATE
+TRUTH_MESSAGE_IDS = (ID_HIL_STATE_QUATERNION, ID_SIMSTATE)
 ID_ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
 ID_ATTITUDE_QUATERNION = mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
 ID_COMMAND_ACK = mavlink.MAVLINK_MSG_ID_COMMAND_ACK
@@ -282,9 +285,10 @@ class BridgeService:
             if stream["achieved_hz"] is not None and \
                     self._streams_told.get(sysid) != stream["message"]:
                 self._streams_told[sysid] = stream["message"]
-                log.info("vehicle %d: estimating from %s at %.0f Hz (asked %g Hz: %s), "
-                         "board %s", sysid, stream["message"], stream["achieved_hz"],
-                         stream["requested_hz"], stream["state"],
+                log.info("vehicle %d: estimating from %s at %.0f Hz, jitter %.2f ms (asked "
+                         "%.4g Hz: %s), board %s", sysid, stream["message"],
+                         stream["achieved_hz"], stream["jitter_ms"], stream["asked_hz"],
+                         stream["state"],
                          self.ingest.board_of(sysid).name)
             silent = now - vehicle.last_imu
             since = self._silent_since.get(sysid)
@@ -393,13 +397,8 @@ class BridgeService:
             self._imu(vehicle, msg, link, arrival, now)
         elif msg_id == ID_HEARTBEAT:
             self._heartbeat(vehicle, msg, compid, link, now)
-        elif msg_id == ID_HIL_STATE_QUATERNION:
-            if (sysid, compid) == (self.truth or (sysid, vehicle.reference_compid())):
-                vehicle.references().add_truth(msg.time_usec * 1e-6,
-                                               np.array(msg.attitude_quaternion))
-                self._position(vehicle, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
-            else:
-                vehicle.refused["refs_refused"] += 1
+        elif msg_id in TRUTH_MESSAGE_IDS:
+            self._truth(vehicle, msg, sysid, compid, arrival)
         elif msg_id in (ID_ATTITUDE_QUATERNION, ID_ATTITUDE):
             if compid != vehicle.reference_compid():
                 vehicle.refused["refs_refused"] += 1
@@ -436,6 +435,23 @@ class BridgeService:
                 return
             vehicle.flight.on_extended_sys_state(now, msg.landed_state)
             self._flight_state(vehicle)
+
+    def _truth(self, vehicle: Vehicle, msg: MAVLinkMessage, sysid: int, compid: int,
+               arrival: float) -> None:
+        """A simulator's true attitude: HIL_STATE_QUATERNION (the emulator stamps it with
+        the board time, PX4 SIH with 0) or ArduPilot SITL's SIMSTATE (no stamp): an
+        unstamped one is placed on the board clock by its arrival."""
+        if (sysid, compid) != (self.truth or (sysid, vehicle.reference_compid())):
+            vehicle.refused["refs_refused"] += 1
+            return
+        if msg.get_msgId() == ID_SIMSTATE:
+            stamp, q = 0, Q.from_euler(msg.roll, msg.pitch, msg.yaw)
+        else:
+            stamp, q = msg.time_usec, np.array(msg.attitude_quaternion)
+            self._position(vehicle, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+        t = stamp * 1e-6 if stamp > 0 else vehicle.arrival_clock.board_time(arrival)
+        if t is not None and np.all(np.isfinite(q)):
+            vehicle.references().add_truth(t, q)
 
     def _flight_state(self, vehicle: Vehicle) -> None:
         """Pass a change of the vehicle's flight state on to its estimators."""
@@ -545,8 +561,14 @@ class BridgeService:
             negotiation.observe(key.msg, sample.t)
             if sample.restart is not None:
                 self._log_restart(vehicle, sample)
-            if sample.restart == "reboot" and vehicle.refs is not None:
+                vehicle.arrival_clock.reset()
+            vehicle.arrival_clock.observe(sample.t, sample.arrival)
+            if sample.restart == "reboot":
                 vehicle.refs = None  # the references' clock restarted too
+                if vehicle.autopilot is not None:
+                    # a rebooted autopilot has forgotten every interval it was asked for
+                    log.info("vehicle %d: asking again for its streams", vehicle.sysid)
+                    negotiation.start(vehicle.autopilot)
             vel, vel_age = None, 0.0
             if aiding is not None:
                 if sample.restart is not None:

@@ -123,7 +123,10 @@ def vehicle_lines(sysid: int, st: dict[str, Any]) -> list[str]:
     achieved = _fmt(s.get("achieved_hz"), ".0f").strip()
     flag = "  BELOW REQUEST" if s.get("below_request") else ""
     refused = f", refused {'; '.join(s['refused'])}" if s.get("refused") else ""
-    imu = (f"       IMU {s.get('message') or '-'} {achieved}/{s.get('requested_hz', 0):g} Hz "
+    jitter = s.get("jitter_ms")
+    jitter_text = f" ±{jitter:.2f} ms" if jitter is not None else ""
+    asked = s.get("asked_hz", s.get("requested_hz", 0))
+    imu = (f"       IMU {s.get('message') or '-'} {achieved}/{asked:.4g} Hz{jitter_text} "
            f"({s.get('state', '-')}{refused}), board {st.get('board', '-')}{flag}")
     d = st.get("declination", {})
     a = st.get("aiding", {})

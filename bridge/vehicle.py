@@ -33,6 +33,7 @@ from typing import Any
 from imu.flight_state import FlightStateTracker
 
 from .aiding import VelocityAiding
+from .clock import ArrivalClock
 from .compare import References
 from .declination import Declination
 from .ingest import SourceKey
@@ -70,6 +71,8 @@ class Vehicle:
     request_backoff: float = 2.0
     command_acks: int = 0
     boot_hint: tuple[float, float] | None = None  # SYSTEM_TIME: (board s, perf_counter)
+    #: board time of unstamped references (a simulator's truth) from their arrival
+    arrival_clock: ArrivalClock = field(default_factory=ArrivalClock)
     refs: References | None = None
     aiding: VelocityAiding = field(default_factory=VelocityAiding)
     declination: Declination = field(default_factory=lambda: Declination(0))

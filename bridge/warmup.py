@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 
+from estimators import quat
 from estimators.spec import EstimatorSpec
 
 #: Called before (seconds None) and after (seconds taken) each item is compiled.
@@ -25,13 +26,14 @@ Progress = Callable[[str, float | None], None]
 
 def warm_up(spec: EstimatorSpec) -> None:
     """Compile every kernel of one estimator the bridge and replay call: ``update``
-    with and without a magnetometer (compiled when created), and the batch loop."""
+    with and without a magnetometer (compiled when created), the batch loop, and the
+    Euler conversion of its output (the bridge's ATTITUDE)."""
     est = spec.create(100.0)
     acc, mag = np.array([0.0, 0.0, -9.8]), np.array([0.2, 0.0, 0.4])
     est.update(np.zeros(3), acc, mag, 0.01)
     est.update(np.zeros(3), acc, None, 0.01, vel=np.zeros(3), vel_age=0.0)
     est.run(np.zeros((2, 3)), np.tile(acc, (2, 1)), np.tile(mag, (2, 1)), 0.01)
-    _ = est.q
+    quat.to_euler(est.q)
 
 
 def warm_up_emulator() -> None:

@@ -12,6 +12,8 @@ import sys
 from dataclasses import fields
 from pathlib import Path
 
+from bridge.cli import seconds  # the command line's shared option types
+
 from .config import IMU_MESSAGES, EmulatorConfig
 from .environment import HOME_ALT_M, HOME_LAT_DEG, HOME_LON_DEG, Environment
 from .faults import FaultConfig
@@ -60,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"motion: {', '.join(PROFILE_NAMES)} or file:PATH (CSV time_s,qw,qx,qy,"
                         "qz); handheld_flight: carried by hand, then two flights (104 s)")
     p.add_argument("--rate", type=float, default=1000.0, help="IMU rate [Hz] (default 1000)")
-    p.add_argument("--duration", type=float, default=0.0,
+    p.add_argument("--duration", type=seconds, default=0.0,
                    help="seconds of stream; 0 runs until interrupted (default)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--fast", action="store_true", help="send as fast as possible (tests)")

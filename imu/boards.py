@@ -55,6 +55,10 @@ class BoardProfile:
     gyro_saturation: int | None  # |count| at which an axis is clipped, None if unknown
     accel_saturation: int | None
     mag_overflow: int | None  # count that means "overflow" for an axis
+    #: The integers are the sensor's own counts, noisy in their last bits, so a reading
+    #: repeated on all six axes is a stuck sensor. ArduPilot's are filtered and rounded
+    #: to mG / mrad/s: a quiet board (or a simulator at rest) repeats them honestly.
+    sensor_counts: bool = True
 
     @property
     def gyro_range(self) -> float:
@@ -121,6 +125,7 @@ def ardupilot() -> BoardProfile:
         gyro_saturation=None,
         accel_saturation=None,
         mag_overflow=None,
+        sensor_counts=False,
     )
 
 

@@ -88,7 +88,19 @@ def _fail(command: str, exc: Exception | str) -> int:
 def _load(path: Path, args: argparse.Namespace):
     from .readers import load
 
-    return load(path, board=args.board, imu=args.imu, reference=args.reference)
+    rec = load(path, board=args.board, imu=args.imu, reference=args.reference)
+    require_reference(rec, args.reference)
+    return rec
+
+
+def require_reference(rec, wanted: str) -> None:
+    """The reference asked for was loaded ("auto": any, or none); else an error naming
+    the file and the references it has: scoring against another kind instead would
+    answer another question without saying so."""
+    if wanted == "auto" or (rec.reference is not None and rec.reference.kind == wanted):
+        return
+    raise ReplayInputError(f"{rec.path}: no {wanted} attitude in this file (references it "
+                           f"has: {', '.join(rec.references) or 'none'})")
 
 
 def check_output_file(path: Path | None, option: str) -> None:
@@ -137,8 +149,6 @@ def _replay(args: argparse.Namespace) -> int:
             require_module("matplotlib", "--png")
         specs = [EstimatorSpec.parse(s) for s in args.estimator] or None
         rec = _load(args.file, args)
-        if args.reference != "auto" and rec.reference is None:
-            raise ReplayInputError(f"{args.file}: no {args.reference} attitude in this file")
         if args.init == "reference" and rec.reference is None:
             raise ReplayInputError(f"{args.file}: --init reference needs a reference attitude")
         ev = evaluate(rec, specs, init=args.init, declination_deg=args.declination_deg,

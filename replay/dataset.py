@@ -143,8 +143,12 @@ class Recording:
     #: the vehicle's own reports of its flight state, in time order (replay.flight)
     state_events: tuple[StateEvent, ...] = ()
     state_events_source: str = ""  # the messages / topics they came from
+    #: every kind of reference the file has (REFERENCE_KINDS), whichever was loaded
+    references: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        if self.reference is not None and self.reference.kind not in self.references:
+            object.__setattr__(self, "references", (*self.references, self.reference.kind))
         n = self.t.shape[0]
         for name in ("gyr", "acc", "mag"):
             arr = getattr(self, name)
@@ -165,15 +169,30 @@ class Recording:
         return float(self.t[-1] - self.t[0]) if self.n > 1 else 0.0
 
     @cached_property
+    def _steps(self) -> np.ndarray:
+        """The IMU's time steps, without the outages (steps over 5x the median)."""
+        d = np.diff(self.t)
+        if d.size == 0:
+            return d
+        return d[(d > 0.0) & (d <= 5.0 * np.median(d))]
+
+    @cached_property
     def rate_hz(self) -> float:
-        """Median IMU rate, used as the estimators' nominal rate (dt comes from ``t``)."""
-        if self.n < 2:
+        """Mean IMU rate over the steps between outages, used as the estimators' nominal
+        rate (dt comes from ``t``). The mean, not the median step: ArduPilot's 333 Hz
+        RAW_IMU comes in uneven 2.5 ms / 5 ms steps."""
+        if self._steps.size == 0:
             return 1.0
-        return float(1.0 / np.median(np.diff(self.t)))
+        return float(1.0 / np.mean(self._steps))
+
+    @cached_property
+    def jitter_ms(self) -> float:
+        """Standard deviation of the IMU's time steps (outages left out) [ms]."""
+        return float(1e3 * np.std(self._steps)) if self._steps.size else 0.0
 
     @cached_property
     def dt(self) -> np.ndarray:
-        """Per-sample step for the estimators: the first sample gets the median step.
+        """Per-sample step for the estimators: the first sample gets the mean step.
 
         Cached: computed once per recording, reused by every tune grid point.
         """

@@ -1,9 +1,10 @@
 """Which magnetic declination the estimators apply to a replayed log, and why.
 
 Order: the user's ``--declination-deg``; the vehicle's own parameter (PX4
-``EKF2_MAG_DECL`` in degrees, ArduPilot ``COMPASS_DEC`` in radians), which is what the
-autopilot applied to its attitude; else the World Magnetic Model at the vehicle's
-position on the log's date (today when the log has none). A reference that is itself
+``EKF2_MAG_DECL`` in degrees, ArduPilot ``COMPASS_DEC`` in radians), which is what
+the autopilot applied to its attitude, unless it is 0 (the default: not set); else the
+World Magnetic Model at the vehicle's position on the log's date (today when the log has
+none). A reference that is itself
 relative to magnetic north (BROAD's optical reference is aligned to the IMU's magnetic
 north) takes none: adding one would create the very error it is meant to remove.
 """
@@ -43,9 +44,14 @@ def resolve(rec: Recording, given_deg: float | None = None) -> Declination:
     if rec.reference is not None and rec.reference.north == "magnetic":
         return Declination(0.0, f"none: the reference ({rec.reference.source}) is relative "
                                 f"to magnetic north")
+    unset = ""
     for name, to_deg in PARAMETERS:
         value = rec.params.get(name)
-        if value is not None and math.isfinite(value):
+        if value == 0.0:
+            # as the live bridge: 0 is the default, not a value (ArduPilot's
+            # COMPASS_AUTODEC sets it only once it has a GPS position)
+            unset = f"; {name} is 0 (not set by the autopilot)"
+        elif value is not None and math.isfinite(value):
             return Declination(float(value) * to_deg, f"vehicle parameter {name}")
     if rec.position is not None:
         from imu.geomag import MODEL_NAME, declination_deg
@@ -60,6 +66,6 @@ def resolve(rec: Recording, given_deg: float | None = None) -> Declination:
                 else "today: the log has no date")
         ns, ew = ("S" if p.lat_deg < 0 else "N"), ("W" if p.lon_deg < 0 else "E")
         return Declination(deg, f"{MODEL_NAME} at {abs(p.lat_deg):.4f}°{ns} "
-                                f"{abs(p.lon_deg):.4f}°{ew} ({p.source}), {date}")
+                                f"{abs(p.lon_deg):.4f}°{ew} ({p.source}), {date}{unset}")
     return Declination(0.0, "none: no --declination-deg, parameter or position in the log; "
-                            "headings are magnetic")
+                            f"headings are magnetic{unset}")

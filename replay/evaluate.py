@@ -376,7 +376,7 @@ class Evaluation:
             "world": rec.world,
             "samples": rec.n,
             "duration_s": rec.duration,
-            "rate_hz": rec.rate_hz,
+            "rate_hz": rec.rate_hz, "jitter_ms": round(rec.jitter_ms, 3),
             "dropped_imu_samples": asdict(rec.cleanup),
             "notes": list(rec.notes),
             "warnings": list(rec.warnings),

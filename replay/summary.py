@@ -26,7 +26,8 @@ def header_lines(ev: Evaluation) -> list[str]:
     rec, prep = ev.recording, ev.prepared
     ref = rec.reference
     lines = [f"{rec.path}: {rec.format}, IMU {rec.source}, {rec.n} samples, "
-             f"{rec.duration:.1f} s at {rec.rate_hz:.1f} Hz"]
+             f"{rec.duration:.1f} s at {rec.rate_hz:.1f} Hz (mean; jitter "
+             f"{rec.jitter_ms:.2f} ms)"]
     if ref is None:
         lines.append("  reference:   none (nothing to score against)")
     else:

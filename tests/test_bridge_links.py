@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import os
 import signal
 import socket
@@ -14,6 +15,7 @@ import tty
 from pathlib import Path
 
 import numpy as np
+import pytest
 from bridge_support import (
     UdpListener,
     async_test,
@@ -24,6 +26,7 @@ from bridge_support import (
     wait_until,
 )
 
+from bridge.links import TcpLink, parse_url
 from bridge.mav import mavlink
 
 REPO = Path(__file__).resolve().parents[1]
@@ -160,3 +163,42 @@ async def test_run_command_serves_and_stops_on_sigint():
     assert proc.returncode == 0, err
     assert "attitude-bridge summary" in out and "vehicle 3" in out
     assert stopped_after < 5.0  # generous under CI load; the benchmark note gives the time
+
+
+@pytest.mark.parametrize(("url", "why"), [
+    ("tcp:nonexistent.invalid:5760", "cannot resolve host 'nonexistent.invalid'"),
+    ("/dev/ttyDOESNOTEXIST:921600", "no such serial device '/dev/ttyDOESNOTEXIST'"),
+])
+def test_run_refuses_a_link_that_cannot_exist_at_start(url, why):
+    """A host name that does not resolve or a serial device that is not there is a typo:
+    one line and exit 2 at once, not retries for ever (here: until --duration ends)."""
+    out = subprocess.run(
+        [sys.executable, "-m", "bridge.cli", "run", "--connect", url, "--estimator",
+         "quaternion", "--duration", "2"],
+        cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2, out.stderr
+    assert out.stderr.count("\n") == 1 and "Traceback" not in out.stderr
+    assert out.stderr.startswith("attitude-bridge run: error: ") and why in out.stderr
+
+
+@async_test
+async def test_refused_tcp_port_is_retried_and_told_once(caplog):
+    """An autopilot that is still starting refuses: one WARNING says so, the link keeps
+    trying with backoff, and connects once the port listens."""
+    with socket.socket() as autopilot:
+        autopilot.bind(("127.0.0.1", 0))  # bound, not listening: connections are refused
+        port = autopilot.getsockname()[1]
+        link = TcpLink(parse_url(f"tcp:127.0.0.1:{port}"))
+        with caplog.at_level(logging.WARNING, logger="bridge.links"):
+            await link.start()
+            try:
+                retried = await wait_until(lambda: link.stats.reconnects >= 3)
+                autopilot.listen()
+                connected = await wait_until(lambda: link.connected)
+            finally:
+                await link.close()
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert retried and connected
+    assert len(warnings) == 1, warnings
+    assert warnings[0].startswith(f"tcp:127.0.0.1:{port}: connection refused by "
+                                  f"127.0.0.1:{port}; retrying")

@@ -59,9 +59,12 @@ async def test_px4_ends_on_highres_imu_at_the_asked_rate_without_a_flag(caplog):
     # The velocity streams were asked for too, after the IMU, and accepted.
     assert stream["aiding_streams"] == {"LOCAL_POSITION_NED": "MAV_RESULT_ACCEPTED",
                                         "GPS_RAW_INT": "MAV_RESULT_ACCEPTED"}
-    # IMU, two velocity streams and the landed state (EXTENDED_SYS_STATE)
+    # IMU, two velocity streams, the landed state (EXTENDED_SYS_STATE) and the two
+    # references of the live comparison (its own attitude, the simulator's truth)
     assert stream["flight_state_stream"] == "MAV_RESULT_ACCEPTED"
-    assert stats.requests.interval_accepted == 4 and stats.requests.interval_refused == 0
+    assert stream["reference_streams"] == {"ATTITUDE_QUATERNION": "MAV_RESULT_ACCEPTED",
+                                           "HIL_STATE_QUATERNION": "MAV_RESULT_ACCEPTED"}
+    assert stats.requests.interval_accepted == 6 and stats.requests.interval_refused == 0
     # The emulator really streamed at 250 Hz after the request (50 Hz before it).
     assert stats.messages["HIGHRES_IMU"] > 0.8 * IMU_RATE * 6.0
 
@@ -90,7 +93,7 @@ async def test_refused_request_is_logged_and_the_next_candidate_asked(caplog):
     assert any("refused RAW_IMU" in w and "MAV_RESULT_FAILED" in w and
                "asking for HIGHRES_IMU" in w for w in warned), warned
     stream = status["imu_stream"]
-    assert stream["refused"] == ["RAW_IMU: MAV_RESULT_FAILED"]
+    assert stream["refused"] == ["RAW_IMU at 250 Hz: MAV_RESULT_FAILED"]
     assert stream["message"] == "HIGHRES_IMU" and stream["state"] == "accepted"
     assert stream["achieved_hz"] == pytest.approx(IMU_RATE, rel=0.02)
     assert stats.requests.interval_refused == 1

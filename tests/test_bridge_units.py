@@ -9,19 +9,29 @@ import time
 
 import numpy as np
 import pytest
-from bridge_support import MAG_NED, G, euler_q, gy86_counts
+from bridge_support import (
+    MAG_NED,
+    ZERO3,
+    G,
+    UdpListener,
+    async_test,
+    euler_q,
+    gy86_counts,
+    wait_until,
+)
 
 from bridge import clock as C
 from bridge.admission import Admission
 from bridge.codec import MavCodec, SigningConfig, load_signing_key, signing_key_from_text
 from bridge.compare import compare_series
 from bridge.config import BridgeConfig
-from bridge.ingest import Ingest
+from bridge.ingest import Ingest, SourceKey
 from bridge.kernelfilter import MARK_LEN, SAMPLE, KernelFilter
-from bridge.links import parse_url
+from bridge.links import open_link, parse_url
 from bridge.mav import mavlink
 from bridge.mqtt import MqttSettings
-from bridge.output import euler_zyx
+from bridge.output import AttitudeOutput
+from bridge.pipeline import Estimate
 from bridge.sequence import SequenceTracker
 from estimators import quat as Q
 from estimators.spec import EstimatorSpec
@@ -382,9 +392,46 @@ def test_mqtt_url_settings():
         MqttSettings.from_url("http://x")
 
 
-def test_euler_matches_quat_module():
-    q = euler_q(10.0, -20.0, 170.0)
-    np.testing.assert_allclose(euler_zyx(q), Q.to_euler(q), atol=1e-12)
+def attitude_grid() -> tuple[np.ndarray, np.ndarray]:
+    """Quaternions across pitch [-90°, 90°] (exactly ±90°, within 1e-6 degree and radian
+    of it, a sweep between), each with several roll/yaw pairs; and their pitch."""
+    edge = [np.pi / 2, np.pi / 2 - 1e-6, np.pi / 2 - np.radians(1e-6), np.pi / 2 - 1e-9]
+    pitches = np.concatenate([np.radians(np.linspace(-90.0, 90.0, 37)), edge,
+                              -np.array(edge)])
+    roll_yaw = np.radians([(25.0, 5.0), (-170.0, 179.0), (120.0, -135.0), (0.0, -90.0)])
+    pitch = np.repeat(pitches, len(roll_yaw))
+    roll, yaw = np.tile(roll_yaw, (len(pitches), 1)).T
+    return Q.from_euler(roll, pitch, yaw), pitch
+
+
+@async_test
+async def test_attitude_message_euler_is_to_euler_at_every_pitch():
+    """The ATTITUDE message, sent through a real link and decoded by pymavlink, carries
+    estimators.quat.to_euler's angles, and they rebuild the attitude sent — also at and
+    next to ±90° pitch, where only yaw ∓ roll is defined (rotations compared there)."""
+    qs, pitch = attitude_grid()
+    listener = UdpListener()
+    port = await listener.start()
+    link = open_link(f"udpout:127.0.0.1:{port}")
+    await link.start()
+    output = AttitudeOutput([link], component_id=191, out_rate=0.0)
+    try:
+        for k, q in enumerate(qs):
+            output.offer(Estimate(SourceKey(1, 1, 27, 0), 0.01 * k, k, q, ZERO3, 0.0))
+        done = await wait_until(lambda: len(listener.of_type("ATTITUDE")) == len(qs))
+    finally:
+        await link.close()
+        listener.close()
+    assert done
+    sent = sorted(listener.of_type("ATTITUDE"), key=lambda m: m.time_boot_ms)
+    angles = np.array([[m.roll, m.pitch, m.yaw] for m in sent])  # float32 on the wire
+    expected = Q.to_euler(qs)
+    wrapped = np.angle(np.exp(1j * (angles - expected)))
+    assert np.abs(wrapped).max() < 1e-6
+    rebuilt = Q.from_euler(angles[:, 0], angles[:, 1], angles[:, 2])
+    assert np.degrees(Q.angle_between(rebuilt, qs)).max() < 1e-3
+    locked = np.cos(pitch) < 0.5 * Q.GIMBAL_LOCK_COS
+    assert locked.any() and np.all(angles[locked, 0] == 0.0)  # heading all in yaw
 
 
 def test_compare_finds_lag_and_scores():

@@ -50,7 +50,7 @@ def bad_inputs(tmp: Path, busy: int) -> list[tuple[list[str], str]]:
         (["run", "--imu-rate", "-1"], "imu_rate"),
         (["run", "--mqtt", "http://broker"], "MQTT URL"),
         (["run", "--record", str(tmp / "no" / "session.tlog")], "does not exist"),
-        (["demo", "--duration", "-1"], "duration"),
+        (["demo", "--duration", "0"], "duration must be positive"),
         (["demo", "--profile", "wobble"], "unknown profile 'wobble'"),
         (["estimators", "foo"], "unknown estimator 'foo'"),
         (["hil", "--target", "udp:127.0.0.1:9", "--profile", "wobble"], "unknown profile"),
@@ -83,6 +83,37 @@ def test_option_errors_are_argparse_usage_never_a_traceback(capsys):
             main(argv)
         err = capsys.readouterr().err
         assert exit_.value.code == 2 and "Traceback" not in err and "error:" in err
+        assert err.count("\n") == 1 and "--help" in err  # one line, not the whole usage
+
+
+def test_durations_must_be_finite_and_not_negative(tmp_path, capsys):
+    """`float` takes nan, inf and -5: `hil --duration nan` streamed for ever and `health
+    --max-age nan` called a stale file fresh. Every duration option refuses them in one
+    line, exit 2 (hil also as a real process: there the old code never ended)."""
+    stale = tmp_path / "status.json"
+    stale.write_text('{"time_unix": 0}')
+    for argv in (["run", "--duration", "nan"], ["demo", "--duration", "-1"],
+                 ["hil", "--target", "udp:127.0.0.1:9", "--duration", "inf"],
+                 ["health", "--status-file", str(stale), "--max-age", "nan"]):
+        with pytest.raises(SystemExit) as exit_:
+            main(argv)
+        err = capsys.readouterr().err
+        assert exit_.value.code == 2 and err.count("\n") == 1, (argv, err)
+        assert err.startswith(f"attitude-bridge {argv[0]}: error: argument {argv[-2]}: must "
+                              f"be a finite number of seconds >= 0, got '{argv[-1]}'"), err
+    procs = [subprocess.Popen([sys.executable, "-m", "bridge.cli", "hil", "--target",
+                               "udp:127.0.0.1:9", "--fast", "--duration", value],
+                              cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                              text=True) for value in ("nan", "-5")]
+    try:
+        errs = [p.communicate(timeout=30)[1] for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    assert [p.returncode for p in procs] == [2, 2], errs
+    assert all(e.count("\n") == 1 and "argument --duration" in e for e in errs), errs
 
 
 def test_health_without_a_running_bridge_is_unhealthy_in_one_line(tmp_path, capsys):
@@ -137,6 +168,24 @@ def parse(argv: list[str]):
     from bridge.cli import build_parser
 
     return build_parser().parse_args(argv)
+
+
+def test_e_is_short_for_estimator_on_every_command_that_takes_it():
+    """The README writes `-e NAME:k=v`; every command with --estimator takes it."""
+    from bridge.cli import build_parser
+
+    commands = build_parser()._subparsers._group_actions[0].choices
+    options = {name: next((a.option_strings for a in p._actions
+                           if "--estimator" in a.option_strings), None)
+               for name, p in commands.items()}
+    takers = {name for name, strings in options.items() if strings}
+    assert {"run", "demo", "replay", "tune"} <= takers
+    assert all("-e" in options[name] for name in takers), options
+    for command in ("run", "demo"):
+        args = parse([command, "-e", "eskf:declination_deg=3.5", "-e", "mahony"])
+        cfg = config_from_args(args, demo=command == "demo", environ={})
+        cfg.validate()
+        assert cfg.estimators == ["eskf:declination_deg=3.5", "mahony"]
 
 
 def test_settings_file_takes_option_names_and_the_environment_overrides_it(tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -108,6 +109,94 @@ def test_csv_and_npz_without_imu(tmp_path):
         load(npz_path)
 
 
+@pytest.mark.filterwarnings("error")  # a numpy RuntimeWarning leaking out fails the test
+@pytest.mark.parametrize(("key", "rows"), [("acc", 1993), ("quat_ref", 100)])
+def test_npz_arrays_of_different_lengths_name_the_file(data_dir, tmp_path, capsys, key, rows):
+    """A real BROAD trial whose arrays no longer have one row per sample: one line naming
+    the file and both lengths, exit 2, before any arithmetic on the arrays."""
+    trial = np.load(data_dir / "broad" / "10_undisturbed_slow_translation_A.npz")
+    arrays = {k: trial[k][:2000] for k in ("gyr", "acc", "mag", "quat_ref", "movement")}
+    arrays[key] = arrays[key][:rows]
+    path = tmp_path / "cut.npz"
+    np.savez(path, rate=trial["rate"], **arrays)
+    assert main(["replay", str(path), "-e", "mahony"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"attitude-bridge replay: error: {path}: ")
+    assert f"{key} is ({rows}," in err and "gyr has 2000" in err
+
+
+def cut_copy(src, dst, size: int):
+    """The first ``size`` bytes of a real log: a recording stopped mid-write."""
+    dst.write_bytes(src.read_bytes()[:size])
+    return dst
+
+
+def test_ulog_cut_inside_a_message_is_noted(data_dir, tmp_path):
+    src = data_dir / "logs" / "pyulog_sample_log_small.ulg"
+    rec = load(cut_copy(src, tmp_path / "cut.ulg", 600_000))
+    assert rec.n < load(src).n
+    cut = [n for n in rec.notes if n.startswith("ULog ends inside a message")]
+    assert len(cut) == 1, rec.notes
+    ignored = int(cut[0].split("last ")[1].split(" bytes")[0])
+    assert cut == [f"ULog ends inside a message: last {ignored} bytes ignored"] and ignored > 0
+    # Cut where that message starts instead: a whole file, the same samples, no note.
+    whole = load(cut_copy(src, tmp_path / "whole.ulg", 600_000 - ignored))
+    assert whole.n == rec.n and not [n for n in whole.notes if "ends inside" in n]
+
+
+def test_tlog_cut_mid_record_is_noted(tmp_path):
+    src = Path(__file__).parent / "data" / "sitl" / "px4_sih_dashes.tlog"
+    rec = load(cut_copy(src, tmp_path / "cut.tlog", 400_000))
+    cut = [n for n in rec.notes if n.startswith("file ends mid-record")]
+    assert len(cut) == 1, rec.notes
+    ignored = int(cut[0].split("last ")[1].split(" bytes")[0])
+    assert cut == [f"file ends mid-record: last {ignored} bytes ignored"] and ignored > 0
+    assert not [n for n in rec.notes if "unreadable" in n]  # the cut is no bad record
+    whole = load(cut_copy(src, tmp_path / "whole.tlog", 400_000 - ignored))
+    assert whole.n == rec.n and not [n for n in whole.notes if "mid-record" in n]
+
+
+def garble(path, lines: list[int]) -> None:
+    """Make one cell of each of these (1-based) lines no number."""
+    text = path.read_text().splitlines()
+    for number in lines:
+        cells = text[number - 1].split(",")
+        cells[4] = "1.2.x"
+        text[number - 1] = ",".join(cells)
+    path.write_text("\n".join(text) + "\n")
+
+
+def test_csv_rows_with_non_numeric_cells_are_dropped_and_counted(data_dir, tmp_path, capsys):
+    path = tmp_path / "trial.csv"
+    broad_as_csv(data_dir, path, rows=3000)
+    garble(path, [17, 100, 2500])  # lines 1-3 are the settings and the header
+    assert load(path).n == 2997
+    assert main(["replay", str(path), "-e", "mahony"]) == 0
+    assert "note: CSV: 3 rows with non-numeric cells dropped (first at line 17)" in \
+        capsys.readouterr().out
+
+
+@pytest.mark.parametrize("kind", ["ulog", "tlog", "csv"])
+def test_damaged_file_with_nothing_usable_left_is_one_line(data_dir, tmp_path, capsys, kind):
+    if kind == "ulog":  # cut before the first sensor_combined sample
+        path = cut_copy(data_dir / "logs" / "pyulog_sample_log_small.ulg",
+                        tmp_path / "cut.ulg", 60_000)
+        damage = "ULog ends inside a message: last "
+    elif kind == "tlog":  # cut after the first IMU sample
+        path = cut_copy(Path(__file__).parent / "data" / "sitl" / "px4_sih_dashes.tlog",
+                        tmp_path / "cut.tlog", 100)
+        damage = "file ends mid-record: last "
+    else:
+        path = tmp_path / "trial.csv"
+        broad_as_csv(data_dir, path, rows=20)
+        garble(path, list(range(4, 24)))
+        damage = "CSV: 20 rows with non-numeric cells dropped (first at line 4)"
+    assert main(["replay", str(path), "-e", "mahony"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"attitude-bridge replay: error: {path}: ")
+    assert damage in err
+
+
 def test_corrupt_ulog_is_a_clear_error(tmp_path):
     path = tmp_path / "broken.ulg"
     path.write_bytes(b"ULog\x01\x12\x35" + b"\x00" * 40)
@@ -118,7 +207,33 @@ def test_corrupt_ulog_is_a_clear_error(tmp_path):
 def test_asking_for_missing_truth_is_an_error(data_dir, capsys):
     path = data_dir / "logs" / "pyulog_sample_log_small.ulg"  # real flight: no groundtruth
     assert main(["replay", str(path), "--reference", "truth", "-e", "mahony"]) == 2
-    assert "no truth attitude" in capsys.readouterr().err
+    assert "no truth attitude in this file (references it has: autopilot)" in \
+        capsys.readouterr().err
+
+
+def broad_as_csv(data_dir, path, rows: int = 3000) -> None:
+    """The start of a real BROAD trial in the CSV format (optical reference = truth)."""
+    trial = np.load(data_dir / "broad" / "10_undisturbed_slow_translation_A.npz")
+    t = np.arange(rows) / float(trial["rate"])
+    csv_format.write(path, t, trial["gyr"][:rows], trial["acc"][:rows], trial["mag"][:rows],
+                     trial["quat_ref"][:rows], world="ENU")
+
+
+@pytest.mark.parametrize("command", ["replay", "tune"])
+@pytest.mark.parametrize("suffix", [".npz", ".csv"])
+def test_asking_for_a_reference_the_file_lacks_names_those_it_has(data_dir, tmp_path, capsys,
+                                                                  command, suffix):
+    """BROAD trials (npz, or as CSV) hold optical truth only: --reference autopilot used to
+    score or tune against that truth without a word."""
+    path = data_dir / "broad" / "10_undisturbed_slow_translation_A.npz"
+    if suffix == ".csv":
+        path = tmp_path / "trial.csv"
+        broad_as_csv(data_dir, path)
+    extra = ["-p", "kp=0.5,1", "-q"] if command == "tune" else []
+    assert main([command, str(path), "--reference", "autopilot", "-e", "mahony", *extra]) == 2
+    assert capsys.readouterr().err == (f"attitude-bridge {command}: error: {path}: no "
+                                       f"autopilot attitude in this file (references it "
+                                       f"has: truth)\n")
 
 
 @pytest.mark.parametrize("option", ["--report", "--json", "--csv"])

@@ -191,4 +191,4 @@ def test_too_slow_imu_is_one_line(data_dir, capsys):
     assert main(["replay", str(path)]) == 0
     out = capsys.readouterr().out
     assert "declination: +12.32° (vehicle parameter COMPASS_DEC)" in out
-    assert "not scored: IMU at 2.9 Hz is too slow" in out and "estimator " not in out
+    assert "not scored: IMU at 2.8 Hz is too slow" in out and "estimator " not in out

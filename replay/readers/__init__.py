@@ -45,8 +45,10 @@ def load(path: str | Path, fmt: str | None = None, board: str | None = None,
     ``board`` names the RAW_IMU profile for tlogs (``imu.boards``; None: the one whose
     accelerometer scale gives 1 g at rest); ``imu`` picks the
     IMU stream when a file has several (a tlog message name, or a ULog multi-instance
-    ``sensor_combined`` is the only one). Errors are :class:`ReplayInputError` with the
-    file name and what was expected.
+    ``sensor_combined`` is the only one). ``reference``: "auto" (truth when the file has
+    it, else the autopilot's attitude), "truth" or "autopilot" (None when the file lacks
+    that kind; ``Recording.references`` lists those it has). Errors are
+    :class:`ReplayInputError` with the file name and what was expected.
     """
     p = Path(path)
     if not p.exists():
@@ -58,6 +60,4 @@ def load(path: str | Path, fmt: str | None = None, board: str | None = None,
         raise ReplayInputError(f"unknown format {kind!r}; valid: {sorted(FORMATS)}")
     if kind == "tlog":
         return tlog.read(p, board=board, imu=imu, reference=reference)
-    if kind == "ulog":
-        return ulog.read(p, reference=reference)
-    return FORMATS[kind](p)
+    return FORMATS[kind](p, reference=reference)

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 
-from ..dataset import Reference, ReplayInputError, TimeCleanup
+from ..dataset import REFERENCE_KINDS, Reference, ReplayInputError, TimeCleanup
 from ..timebase import monotonic_mask
 
 
@@ -41,6 +43,21 @@ def make_reference(t: np.ndarray, q: np.ndarray, kind: str, source: str,
                      timing=timing)
 
 
-def require_imu(n: int, path: object, what: str) -> None:
+def require_imu(n: int, path: object, what: str, damage: str = "") -> None:
+    """At least two IMU samples; else an error that also says what damage cost them."""
     if n < 2:
-        raise ReplayInputError(f"{path}: no IMU samples found (looked for {what})")
+        raise ReplayInputError(f"{path}: no IMU samples found (looked for {what})"
+                               + (f"; {damage}" if damage else ""))
+
+
+def pick_reference(found: Mapping[str, Reference | None], wanted: str
+                   ) -> tuple[Reference | None, tuple[str, ...]]:
+    """The reference asked for and the kinds the file has (in order of preference).
+
+    ``auto`` is truth when the file has it, else the autopilot's attitude. A kind the
+    file lacks gives None, never another kind: the replay command then says which
+    kinds there are instead of scoring against something else.
+    """
+    has = tuple(kind for kind in REFERENCE_KINDS if found.get(kind) is not None)
+    kind = (has[0] if has else None) if wanted == "auto" else wanted
+    return (found.get(kind) if kind in has else None), has

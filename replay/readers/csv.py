@@ -15,6 +15,8 @@ Format (one header row of column names, then one row per IMU sample)::
 * ``qw qx qy qz`` optional reference attitude [w, x, y, z], body -> world, on the same
   rows; empty or NaN where unknown
 * ``score`` optional 0/1: which rows count for the RMSE (default all)
+* a row with a cell that is not a number (``abc``, ``1.2.3``) is dropped; the recording's
+  notes say how many and the first one's line
 
 Lines starting with ``#`` are comments, apart from the ``key: value`` settings above.
 """
@@ -27,14 +29,14 @@ import numpy as np
 
 from ..board import magnitude_warning
 from ..dataset import NORTH_KINDS, REFERENCE_KINDS, Recording, ReplayInputError
-from ._common import clean_stream, make_reference
+from ._common import clean_stream, make_reference, pick_reference
 
 IMU_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
 MAG_COLUMNS = ("mx", "my", "mz")
 REF_COLUMNS = ("qw", "qx", "qy", "qz")
 
 
-def read(path: Path) -> Recording:
+def read(path: Path, reference: str = "auto") -> Recording:
     settings, header, body_start = _preamble(path)
     missing = [c for c in IMU_COLUMNS if c not in header]
     if missing:
@@ -48,6 +50,7 @@ def read(path: Path) -> Recording:
         raise ReplayInputError(f"{path}: malformed CSV ({exc})") from exc
     if table.size == 0 or table.shape[1] != len(header):
         raise ReplayInputError(f"{path}: rows must have {len(header)} values like the header")
+    table, damage = _drop_non_numeric_rows(path, body_start, table)
 
     def cols(names: tuple[str, ...]) -> np.ndarray | None:
         if not all(n in header for n in names):
@@ -66,15 +69,63 @@ def read(path: Path) -> Recording:
     t, (gyr, acc, *rest), cleanup = clean_stream(
         t_raw, cols(("gx", "gy", "gz")), cols(("ax", "ay", "az")), *extra)
     if len(t) < 2:
-        raise ReplayInputError(f"{path}: fewer than 2 IMU rows with increasing time")
+        raise ReplayInputError(f"{path}: fewer than 2 IMU rows with increasing time"
+                               + (f"; {damage}" if damage else ""))
     mag = rest.pop(0) if "mx" in header and all(c in header for c in MAG_COLUMNS) else None
     q = rest.pop(0) if all(c in header for c in REF_COLUMNS) else None
     score = rest.pop(0)[:, 0] > 0.5 if "score" in header else None
-    ref = None if q is None else make_reference(t, q, kind, "csv qw,qx,qy,qz", north=north)
+    found = None if q is None else make_reference(t, q, kind, "csv qw,qx,qy,qz", north=north)
+    ref, references = pick_reference({kind: found}, reference)
     warning = magnitude_warning(acc, "the CSV's ax,ay,az")
     return Recording(path=path, format="csv", t=t, gyr=gyr, acc=acc, mag=mag, world=world,
                      body="FRD", source="csv", reference=ref, score_mask=score,
-                     cleanup=cleanup, warnings=(warning,) if warning else ())
+                     cleanup=cleanup, notes=(damage,) if damage else (),
+                     warnings=(warning,) if warning else (), references=references)
+
+
+def _drop_non_numeric_rows(path: Path, body_start: int, table: np.ndarray
+                           ) -> tuple[np.ndarray, str]:
+    """The table without rows that have a cell that is no number, and a note saying how
+    many and where the first is ("" when none).
+
+    genfromtxt reads such a cell ("1.2.3", "abc", a line garbled by a crash) as NaN,
+    like an empty cell or a written "nan", which mean "unknown" in this format. Only the
+    rows that hold a NaN are looked at again as text, to tell the two apart.
+    """
+    suspects = np.flatnonzero(np.isnan(table).any(axis=1))
+    if not suspects.size:
+        return table, ""
+    lines = _data_lines(path, body_start)
+    bad = [k for k in suspects.tolist() if not all(map(_number_or_empty, lines[k][1]))]
+    if not bad:
+        return table, ""
+    rows = "row" if len(bad) == 1 else "rows"
+    return (np.delete(table, bad, axis=0),
+            f"CSV: {len(bad)} {rows} with non-numeric cells dropped (first at line "
+            f"{lines[bad[0]][0]})")
+
+
+def _data_lines(path: Path, body_start: int) -> list[tuple[int, list[str]]]:
+    """(line number, cells) of each data row, skipping what genfromtxt skips: the lines
+    up to the header, comments (from ``#`` on) and blank lines."""
+    out = []
+    with path.open("r", encoding="utf-8", errors="replace") as f:
+        for number, line in enumerate(f, start=1):
+            text = line.split("#", 1)[0].strip()
+            if number > body_start and text:
+                out.append((number, text.split(",")))
+    return out
+
+
+def _number_or_empty(cell: str) -> bool:
+    text = cell.strip()
+    if not text:
+        return True
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _preamble(path: Path) -> tuple[dict[str, str], list[str], int]:

@@ -13,12 +13,12 @@ import numpy as np
 
 from ..board import magnitude_warning
 from ..dataset import Recording, ReplayInputError, TimeCleanup
-from ._common import make_reference
+from ._common import make_reference, pick_reference
 
 REQUIRED = ("rate", "gyr", "acc")
 
 
-def read(path: Path) -> Recording:
+def read(path: Path, reference: str = "auto") -> Recording:
     try:
         data = np.load(path, allow_pickle=False)
     except Exception as exc:
@@ -38,13 +38,32 @@ def read(path: Path) -> Recording:
                     if "movement" in data.files else None)
     if not (np.isfinite(rate) and rate > 0):
         raise ReplayInputError(f"{path}: rate must be a positive number, got {rate}")
-    if gyr.ndim != 2 or gyr.shape[1] != 3 or gyr.shape[0] < 2:
-        raise ReplayInputError(f"{path}: gyr must be (N>=2, 3), got {gyr.shape}")
+    _check_shapes(path, gyr, {"acc": acc, "mag": mag, "quat_ref": q_ref,
+                              "movement": movement})
     t = np.arange(gyr.shape[0]) / rate  # sample k is at k / rate
-    ref = None if q_ref is None else make_reference(t, q_ref, "truth", "quat_ref (optical)",
-                                                  north="magnetic")
+    found = None if q_ref is None else make_reference(t, q_ref, "truth", "quat_ref (optical)",
+                                                    north="magnetic")
+    ref, references = pick_reference({"truth": found}, reference)
     warning = magnitude_warning(acc, "npz acc")
     return Recording(path=path, format="npz", t=t, gyr=gyr, acc=acc, mag=mag, world="ENU",
                      body="sensor", source="npz gyr/acc/mag", reference=ref,
                      score_mask=movement, cleanup=TimeCleanup(kept=len(t)),
-                     warnings=(warning,) if warning else ())
+                     warnings=(warning,) if warning else (), references=references)
+
+
+def _check_shapes(path: Path, gyr: np.ndarray, others: dict[str, np.ndarray | None]) -> None:
+    """One row per gyro sample in every array, before any arithmetic on them.
+
+    Arrays of different lengths (a file cut or put together wrongly) cannot be paired
+    row by row; caught later, they fail inside numpy (warnings, a message without the
+    file's name) or pair different instants.
+    """
+    if gyr.ndim != 2 or gyr.shape[1] != 3 or gyr.shape[0] < 2:
+        raise ReplayInputError(f"{path}: gyr must be (N>=2, 3), got {gyr.shape}")
+    n = gyr.shape[0]
+    columns = {"acc": (3,), "mag": (3,), "quat_ref": (4,), "movement": ()}
+    for key, arr in others.items():
+        expected = (n, *columns[key])
+        if arr is not None and arr.shape != expected:
+            raise ReplayInputError(f"{path}: {key} is {arr.shape}, expected {expected} "
+                                   f"(one row per gyr sample; gyr has {n})")

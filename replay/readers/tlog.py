@@ -32,7 +32,7 @@ from estimators import quat as Q
 from ..board import choose_board, magnitude_warning
 from ..dataset import Position, Recording, Reference, ReplayInputError, StateEvent
 from ..timebase import sample_and_hold
-from ._common import clean_stream, make_reference
+from ._common import clean_stream, make_reference, pick_reference, require_imu
 from .velocity import VelocityRows, place_velocity
 
 os.environ["MAVLINK20"] = "1"
@@ -49,6 +49,7 @@ SESSION_PAD_S = 1.0  # reference messages this close to a session's ends belong 
 STAMP_SLACK_S = 10.0  # a stamp this far outside the IMU's time span is on another clock
 UINT16_UNKNOWN = 65535
 MAVLINK1_STX, MAVLINK2_STX = 0xFE, 0xFD
+FRAME_HEADER_BYTES = 10  # what _frame reads: a MAVLink 2 header up to the message id
 STAMP_JUMP_US = 86_400_000_000  # consecutive arrival stamps a day apart: misframed record
 GPS_FIX_3D = 3
 MAV_TYPE_GCS = 6
@@ -59,13 +60,16 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
          reference: str = "auto") -> Recording:
     if imu is not None and imu.upper() not in IMU_MESSAGES:
         raise ReplayInputError(f"unknown IMU message {imu!r}; valid: {list(IMU_MESSAGES)}")
-    messages, unreadable = _collect(path)
-    imu_type, src = _pick_imu(messages, imu.upper() if imu else None, path)
+    messages, unreadable, tail = _collect(path)
+    damage = f"file ends mid-record: last {tail} bytes ignored" if tail else ""
+    imu_type, src = _pick_imu(messages, imu.upper() if imu else None, path, damage)
     rows = [m for m in messages[imu_type] if (m.get_srcSystem(), m.get_srcComponent()) == src]
     if imu_type == "RAW_IMU":  # several IMUs share RAW_IMU, told apart by `id`
         ids = Counter(getattr(m, "id", 0) for m in rows)
         rows = [m for m in rows if getattr(m, "id", 0) == min(ids)]
     notes = [f"IMU {imu_type} from system {src[0]} component {src[1]}"]
+    if damage:
+        notes.append(damage)
     if unreadable:
         notes.append(f"skipped {unreadable} unreadable stretch(es) of the log (bad CRC, "
                      f"cut frames or bytes between records)")
@@ -87,10 +91,13 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
     t, gyr, acc, mag = t[keep], gyr[keep], acc[keep], mag[keep]
     t, (gyr, acc, mag), cleanup = clean_stream(t, gyr, acc, mag)
     if len(t) < 2:
-        raise ReplayInputError(f"{path}: fewer than 2 usable {imu_type} samples")
+        raise ReplayInputError(f"{path}: fewer than 2 usable {imu_type} samples"
+                               + (f"; {damage}" if damage else ""))
     in_session = {k: [m for m in v if window[0] <= m._timestamp <= window[1]]
                   for k, v in messages.items()}
-    ref = _reference(in_session, src, reference, clock)
+    ref, references = pick_reference({"truth": _truth(in_session, src, clock),
+                                      "autopilot": _autopilot(in_session, src, clock)},
+                                     reference)
     when, when_source = _date(in_session, src)
     velocity = place_velocity(_velocity_rows(in_session, src, clock), t)
     beats = [m.type for m in _same_component(messages.get("HEARTBEAT", []), src)]
@@ -106,7 +113,8 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
                      when=when, when_source=when_source, velocity=velocity,
                      mav_type=Counter(beats).most_common(1)[0][0] if beats else None,
                      mav_type_source="HEARTBEAT" if beats else "",
-                     state_events=events, state_events_source=events_source)
+                     state_events=events, state_events_source=events_source,
+                     references=references)
 
 
 def _state_events(messages: dict[str, list], src: tuple, clock: BoardClock
@@ -187,8 +195,9 @@ def _longest_session(t: np.ndarray, arrival: np.ndarray
     return keep, window, note
 
 
-def _collect(path: Path) -> tuple[dict[str, list], int]:
-    """The messages replay uses, by type, and how many unreadable stretches were skipped.
+def _collect(path: Path) -> tuple[dict[str, list], int, int]:
+    """The messages replay uses, by type, how many unreadable stretches were skipped, and
+    how many bytes at the end were a record cut short (the recorder stopped mid-write).
 
     Each message gets ``_timestamp`` (arrival, s) and ``_order``, its record's position.
 
@@ -212,6 +221,8 @@ def _collect(path: Path) -> tuple[dict[str, list], int]:
     while i + 16 <= size:
         stamp = int.from_bytes(data[i:i + 8], "big")
         frame = _frame(data, i + 8)
+        if frame is None and i + 8 + FRAME_HEADER_BYTES > size:
+            break  # the end of the file cuts the frame's header
         if frame is None or (last is not None and abs(stamp - last) > STAMP_JUMP_US):
             bad += 1
             i = _resync(data, i + 1, last)
@@ -233,12 +244,12 @@ def _collect(path: Path) -> tuple[dict[str, list], int]:
         last = stamp
         order += 1
         i = end
-    return out, bad
+    return out, bad, size - i
 
 
 def _frame(data: bytes, k: int) -> tuple[int, int] | None:
     """(frame length, message id) of a MAVLink 1 or 2 frame starting at ``k``."""
-    if k + 10 > len(data):
+    if k + FRAME_HEADER_BYTES > len(data):
         return None
     if data[k] == MAVLINK2_STX:
         signed = 13 if data[k + 2] & 0x01 else 0
@@ -259,11 +270,11 @@ def _resync(data: bytes, k: int, last: int | None) -> int:
     return len(data)
 
 
-def _pick_imu(messages: dict[str, list], imu: str | None, path: Path) -> tuple[str, tuple]:
+def _pick_imu(messages: dict[str, list], imu: str | None, path: Path,
+              damage: str = "") -> tuple[str, tuple]:
     candidates = [imu] if imu else [m for m in IMU_MESSAGES if messages.get(m)]
     if not candidates or not messages.get(candidates[0]):
-        raise ReplayInputError(f"{path}: no IMU samples found (looked for "
-                               f"{imu or ', '.join(IMU_MESSAGES)})")
+        require_imu(0, path, imu or ", ".join(IMU_MESSAGES), damage)
     kind = candidates[0]
     sources = Counter((m.get_srcSystem(), m.get_srcComponent()) for m in messages[kind])
     return kind, sources.most_common(1)[0][0]
@@ -315,25 +326,28 @@ def _message_times(rows: list, field: str, scale: float, clock: BoardClock
     return np.where(ok, own, arrival), how
 
 
-def _reference(messages: dict[str, list], src: tuple, reference: str,
-               clock: BoardClock) -> Reference | None:
+def _truth(messages: dict[str, list], src: tuple, clock: BoardClock) -> Reference | None:
+    """The simulator's attitude: HIL_STATE_QUATERNION (PX4 SITL), else SIMSTATE."""
     sysid = src[0]
-    if reference in ("auto", "truth"):
-        rows = [m for m in messages.get("HIL_STATE_QUATERNION", []) if m.get_srcSystem() == sysid]
-        if rows:
-            t, how = _message_times(rows, "time_usec", 1e-6, clock)
-            q = np.array([m.attitude_quaternion for m in rows], dtype=float)
-            return make_reference(t, q, "truth", "HIL_STATE_QUATERNION", timing=how)
-        rows = [m for m in messages.get("SIMSTATE", []) if m.get_srcSystem() == sysid]
-        if rows:
-            # ArduPilot SITL's simulator state (true north); it carries no time stamp
-            t = clock.preceding(np.array([m._order for m in rows]))
-            e = np.array([[m.roll, m.pitch, m.yaw] for m in rows], dtype=float)
-            return make_reference(t, Q.from_euler(e[:, 0], e[:, 1], e[:, 2]), "truth",
-                                  "SIMSTATE", timing="no time stamp: aligned by arrival "
-                                  "(board time of the IMU message before it)")
-        if reference == "truth":
-            return None
+    rows = [m for m in messages.get("HIL_STATE_QUATERNION", []) if m.get_srcSystem() == sysid]
+    if rows:
+        t, how = _message_times(rows, "time_usec", 1e-6, clock)
+        q = np.array([m.attitude_quaternion for m in rows], dtype=float)
+        return make_reference(t, q, "truth", "HIL_STATE_QUATERNION", timing=how)
+    rows = [m for m in messages.get("SIMSTATE", []) if m.get_srcSystem() == sysid]
+    if rows:
+        # ArduPilot SITL's simulator state (true north); it carries no time stamp
+        t = clock.preceding(np.array([m._order for m in rows]))
+        e = np.array([[m.roll, m.pitch, m.yaw] for m in rows], dtype=float)
+        return make_reference(t, Q.from_euler(e[:, 0], e[:, 1], e[:, 2]), "truth",
+                              "SIMSTATE", timing="no time stamp: aligned by arrival "
+                              "(board time of the IMU message before it)")
+    return None
+
+
+def _autopilot(messages: dict[str, list], src: tuple, clock: BoardClock
+               ) -> Reference | None:
+    """The vehicle's own estimate: ATTITUDE_QUATERNION, else ATTITUDE."""
     for kind in ("ATTITUDE_QUATERNION", "ATTITUDE"):
         rows = _same_component(messages.get(kind, []), src)
         if not rows:

@@ -12,6 +12,7 @@ the GPS position and UTC date (for the declination) and the velocity (for aiding
 from __future__ import annotations
 
 import datetime as _dt
+import mmap
 from pathlib import Path
 
 import numpy as np
@@ -19,13 +20,22 @@ import numpy as np
 from ..board import magnitude_warning
 from ..dataset import Position, Recording, Reference, ReplayInputError, StateEvent
 from ..timebase import sample_and_hold
-from ._common import clean_stream, make_reference, require_imu, trim_before_first_mag
+from ._common import (
+    clean_stream,
+    make_reference,
+    pick_reference,
+    require_imu,
+    trim_before_first_mag,
+)
 from .velocity import VelocityRows, place_velocity
 
 US = 1e-6
 RELATIVE_INVALID = 2147483647  # sensor_combined *_timestamp_relative: "not updated"
 GPS_TOPICS = ("vehicle_gps_position", "sensor_gps")
 ARMING_STATE_ARMED = 2  # vehicle_status.arming_state (PX4's ARMING_STATE_ARMED)
+FILE_HEADER_BYTES = 16  # magic, version, start time
+MESSAGE_HEADER_BYTES = 3  # uint16 payload size, uint8 type
+MESSAGE_TYPES = frozenset(b"ABCDFILMOPQRS")  # every message type of the ULog format
 
 
 def read(path: Path, reference: str = "auto") -> Recording:
@@ -36,10 +46,12 @@ def read(path: Path, reference: str = "auto") -> Recording:
     except Exception as exc:  # pyulog raises bare Exceptions on corrupt headers
         raise ReplayInputError(f"{path}: not a readable ULog file ({exc})") from exc
     topics = {(d.name, d.multi_id): d.data for d in ulog.data_list}
+    cut = _bytes_after_last_message(path)
+    damage = f"ULog ends inside a message: last {cut} bytes ignored" if cut else ""
 
     imu = topics.get(("sensor_combined", 0))
-    if imu is None or len(imu["timestamp"]) < 2:
-        raise ReplayInputError(f"{path}: no IMU samples found (ULog topic sensor_combined)")
+    require_imu(0 if imu is None else len(imu["timestamp"]), path, "ULog topic sensor_combined",
+                damage)
     # Subtract a common origin in integers first: PX4 can stamp with epoch µs (~1.7e15),
     # where float64 seconds keep only ~0.2 µs and every dt would carry that jitter.
     origin = int(imu["timestamp"][0])
@@ -47,7 +59,7 @@ def read(path: Path, reference: str = "auto") -> Recording:
     gyr = _vec(imu, "gyro_rad[{}]")
     acc = _vec(imu, "accelerometer_m_s2[{}]")
     t, (gyr, acc), cleanup = clean_stream(t, gyr, acc)
-    notes = []
+    notes = [damage] if damage else []
 
     mag = None
     mag_topic = _mag_topic(topics)
@@ -62,9 +74,9 @@ def read(path: Path, reference: str = "auto") -> Recording:
     else:
         notes.append("no magnetometer topic (vehicle_magnetometer, sensor_combined."
                      "magnetometer_ga, sensor_mag)")
-    require_imu(len(t), path, "sensor_combined")
+    require_imu(len(t), path, "sensor_combined", damage)
 
-    ref = _reference(topics, reference, origin)
+    ref, references = pick_reference(_references(topics, origin), reference)
     warning = magnitude_warning(acc, "sensor_combined")
     when, when_source = _date(topics)
     events, events_source = _state_events(topics, origin)
@@ -81,7 +93,28 @@ def read(path: Path, reference: str = "auto") -> Recording:
                      mav_type=_mav_type(ulog.initial_parameters),
                      mav_type_source="parameter MAV_TYPE" if "MAV_TYPE" in
                      ulog.initial_parameters else "",
-                     state_events=events, state_events_source=events_source)
+                     state_events=events, state_events_source=events_source,
+                     references=references)
+
+
+def _bytes_after_last_message(path: Path) -> int:
+    """Bytes at the end that do not make a whole message: a log cut while it was being
+    written (power lost, copied early). pyulog drops them without a word.
+
+    Walks the messages' 3-byte headers (size, type) from the file header on. A byte
+    that is no message type means corruption inside the file, which pyulog skips by
+    looking for the next sync; the walk cannot follow it there, so it claims nothing.
+    """
+    with path.open("rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+        size, pos = len(data), FILE_HEADER_BYTES
+        while pos + MESSAGE_HEADER_BYTES <= size:
+            if data[pos + 2] not in MESSAGE_TYPES:
+                return 0
+            end = pos + MESSAGE_HEADER_BYTES + (data[pos] | data[pos + 1] << 8)
+            if end > size:
+                break
+            pos = end
+        return max(0, size - pos)
 
 
 def _state_events(topics: dict, origin: int) -> tuple[tuple[StateEvent, ...], str]:
@@ -162,16 +195,17 @@ def _combined_mag(imu: dict) -> dict | None:
     return {"timestamp": np.asarray(imu["timestamp"], dtype=np.int64)[ok] + rel[ok], **values}
 
 
-def _reference(topics: dict, reference: str, origin: int) -> Reference | None:
-    order = {"auto": ("vehicle_attitude_groundtruth", "vehicle_attitude"),
-             "truth": ("vehicle_attitude_groundtruth",),
-             "autopilot": ("vehicle_attitude",)}[reference]
-    for name in order:
-        data = topics.get((name, 0))
-        if data is not None and len(data["timestamp"]) > 0:
-            kind = "truth" if name.endswith("groundtruth") else "autopilot"
-            return make_reference(_time(data, origin), _vec4(data), kind, name)
-    return None
+def _references(topics: dict, origin: int) -> dict[str, Reference | None]:
+    """Truth from the simulator's groundtruth topic, the autopilot's from its estimate."""
+    return {"truth": _topic_reference(topics, "vehicle_attitude_groundtruth", "truth", origin),
+            "autopilot": _topic_reference(topics, "vehicle_attitude", "autopilot", origin)}
+
+
+def _topic_reference(topics: dict, name: str, kind: str, origin: int) -> Reference | None:
+    data = topics.get((name, 0))
+    if data is None or len(data["timestamp"]) == 0:
+        return None
+    return make_reference(_time(data, origin), _vec4(data), kind, name)
 
 
 def _vec4(data: dict) -> np.ndarray:

@@ -1,5 +1,13 @@
-"""Helpers for ``record_sitl_flights.py``: start a real SITL autopilot, talk to it on its
-onboard MAVLink link and record that link as a tlog.
+"""Real SITL autopilots for tests and recordings: start PX4 (SIH quadrotor) or ArduPilot
+Copter from the packed runtimes in ``../shared/autopilots`` (read its README), each in a
+private folder on its own ports, and talk to one as a ground station would.
+
+Ports: an ArduPilot instance sends its two links to ports chosen here (free ones); a PX4
+instance's ports follow from its instance number (onboard link: it sends to 14540+N,
+listens on 14580+N; GCS link: listens on 18570+N), and PX4 allows one process per
+instance number on a machine, so instance numbers are reserved with a lock file that
+other test processes respect. PX4 answers a ground station on whichever local address
+spoke to its GCS port first, so a test flies it from an ephemeral port (``udpout``).
 
 A tlog record is the 8-byte big-endian arrival time in µs followed by the raw MAVLink frame,
 written here by hand (pymavlink's ``mavudp`` does not log through ``setup_logfile``). Only
@@ -13,6 +21,7 @@ import os
 os.environ["MAVLINK20"] = "1"  # before pymavlink is imported: PX4 and ArduPilot speak v2
 
 import contextlib
+import fcntl
 import math
 import select
 import shutil
@@ -24,13 +33,14 @@ import tempfile
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from pymavlink import mavutil
 
 mav = mavutil.mavlink
-AUTOPILOTS = Path(os.environ.get("SITL_AUTOPILOTS", "/work/shared/autopilots"))
+REPO = Path(__file__).resolve().parents[1]
 
 ACCEPTED, IN_PROGRESS = 0, 5
 ARMED_FLAG = 128  # HEARTBEAT base_mode MAV_MODE_FLAG_SAFETY_ARMED
@@ -40,10 +50,73 @@ VELOCITY_YAWRATE_MASK = 0b0000_0101_1100_0111
 GCS_SYSID, GCS_COMPID = 255, 190
 
 
+# --------------------------------------------------------------------------- where and which ports
+def autopilots_dir() -> Path:
+    """SITL_AUTOPILOTS, else ``shared/autopilots`` beside this checkout or beside the
+    checkout it was cloned from (CI tests a clone)."""
+    if "SITL_AUTOPILOTS" in os.environ:
+        return Path(os.environ["SITL_AUTOPILOTS"])
+    beside = REPO.parent / "shared" / "autopilots"
+    if beside.is_dir():
+        return beside
+    with contextlib.suppress(OSError, subprocess.SubprocessError):
+        url = subprocess.run(["git", "-C", str(REPO), "config", "--get", "remote.origin.url"],
+                             capture_output=True, text=True, timeout=5).stdout.strip()
+        origin = Path(url.removeprefix("file://"))
+        if url and origin.is_absolute() and (origin.parent / "shared" / "autopilots").is_dir():
+            return origin.parent / "shared" / "autopilots"
+    return beside
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 that nothing is bound to now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _udp_port_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+PX4_INSTANCES = range(1, 10)  # 0 is left to a user's own PX4 (onboard udp 14540)
+
+
+@contextlib.contextmanager
+def px4_instance() -> Iterator[int]:
+    """Reserve a PX4 instance number whose ports are free, for the ``with`` block: a
+    lock file per number, held with flock, so parallel test processes never share one."""
+    lock_dir = Path(tempfile.gettempdir()) / "attitude_bridge_px4_instances"
+    lock_dir.mkdir(exist_ok=True)
+    for n in PX4_INSTANCES:
+        f = (lock_dir / f"{n}.lock").open("w")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.close()
+            continue
+        if all(_udp_port_free(p) for p in (14540 + n, 14580 + n, 18570 + n)):
+            try:
+                yield n
+            finally:
+                f.close()
+            return
+        f.close()
+    raise RuntimeError("no free PX4 instance number (1-9): every one is in use")
+
+
 # --------------------------------------------------------------------------- autopilot process
 @dataclass
 class Sitl:
-    """One autopilot process, run from a private copy of its shared folder."""
+    """One autopilot process, run from a private copy of its shared folder.
+
+    ``start`` may be called again after ``kill``: the same folder, the parameters it
+    saved (a restart, not a fresh vehicle)."""
 
     kind: str  # "px4" or "ardupilot"
     env: dict[str, str] = field(default_factory=dict)
@@ -58,16 +131,24 @@ class Sitl:
         assert self.tmp is not None
         return self.tmp / "run" / ("px4.pid" if self.kind == "px4" else "ap.pid")
 
-    def start(self) -> str:
-        self.tmp = Path(tempfile.mkdtemp(prefix=f"sitl_{self.kind}_"))
-        here = self.tmp / "dist"
-        here.mkdir()
-        for f in (AUTOPILOTS / self.kind).iterdir():  # the folder itself is read-only
-            shutil.copyfile(f, here / f.name)
-        (here / self.script).chmod(0o755)
-        out = subprocess.run(["bash", str(here / self.script), str(self.tmp / "run")],
-                             env={**os.environ, **self.env}, capture_output=True, text=True,
-                             timeout=120)
+    def start(self, fresh: bool = True) -> str:
+        """Start it (about a second); returns the start script's line. RuntimeError with
+        the script's reason if it does not start."""
+        if self.tmp is None:
+            self.tmp = Path(tempfile.mkdtemp(prefix=f"sitl_{self.kind}_"))
+            here = self.tmp / "dist"
+            here.mkdir()
+            source = autopilots_dir() / self.kind
+            if not source.is_dir():
+                raise RuntimeError(f"no {self.kind} runtime at {source} (set SITL_AUTOPILOTS "
+                                   "to the shared/autopilots folder)")
+            for f in source.iterdir():  # the folder itself is read-only
+                shutil.copyfile(f, here / f.name)
+            (here / self.script).chmod(0o755)
+        env = {**os.environ, **self.env, "FRESH": "1" if fresh else "0"}
+        out = subprocess.run(["bash", str(self.tmp / "dist" / self.script),
+                              str(self.tmp / "run")],
+                             env=env, capture_output=True, text=True, timeout=120)
         if out.returncode != 0:
             raise RuntimeError(f"{self.script} failed: {out.stderr.strip()}")
         return out.stdout.strip()
@@ -77,7 +158,8 @@ class Sitl:
         log = self.tmp / "run" / ("px4.log" if self.kind == "px4" else "ap.log")
         return log.read_text(errors="replace") if log.exists() else ""
 
-    def stop(self) -> None:
+    def kill(self) -> None:
+        """Stop the process (SIGTERM, then SIGKILL after 10 s); keep its folder."""
         if self.tmp is None:
             return
         with contextlib.suppress(FileNotFoundError, ValueError, ProcessLookupError):
@@ -89,6 +171,12 @@ class Sitl:
                 time.sleep(0.1)
             else:
                 os.kill(pid, signal.SIGKILL)
+
+    def stop(self) -> None:
+        """Stop the process and remove its folder."""
+        if self.tmp is None:
+            return
+        self.kill()
         shutil.rmtree(self.tmp, ignore_errors=True)
         self.tmp = None
 
@@ -103,8 +191,11 @@ class Event:
 class Link:
     """The companion end of an onboard link: receive thread + tlog writer + command helpers."""
 
-    def __init__(self, port: int, keep: set[str]):
-        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}",
+    def __init__(self, port: int, keep: set[str], listen: bool = True):
+        """``listen``: bind ``port`` (the autopilot sends there); else send to it from
+        an ephemeral port (PX4's GCS link answers whoever spoke first)."""
+        mode = "udpin" if listen else "udpout"
+        self.conn = mavutil.mavlink_connection(f"{mode}:127.0.0.1:{port}",
                                                source_system=GCS_SYSID,
                                                source_component=GCS_COMPID)
         self.conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
@@ -114,6 +205,9 @@ class Link:
         self.file = None
         self.written: Counter[str] = Counter()
         self.seen: Counter[str] = Counter()
+        self.seen_from: Counter[tuple[str, int]] = Counter()  # (type, component id)
+        #: message type -> callback(message), called in the receive thread
+        self.on_message: dict[str, Callable] = {}
         self.events: list[Event] = []
         self.statustext: list[tuple[float, str]] = []
         self.armed: bool | None = None
@@ -154,6 +248,7 @@ class Link:
         if src != self.sysid:
             return
         self.seen[kind] += 1
+        self.seen_from[(kind, m.get_srcComponent())] += 1
         if self.file is not None and kind in self.keep:
             self._write(m, now)
         with self.cond:
@@ -176,6 +271,8 @@ class Link:
                 self.acks[m.command] = m.result
             elif kind == "STATUSTEXT":
                 self.statustext.append((now, m.text))
+            if kind in self.on_message:
+                self.on_message[kind](m)
             self.cond.notify_all()
 
     def _write(self, m, now: float) -> None:
@@ -208,10 +305,12 @@ class Link:
             self._write(msg, time.time())
 
     def _heartbeat(self) -> None:
-        while not self.stop_flag.wait(1.0):
-            if self.sysid is not None:
+        while True:
+            with contextlib.suppress(OSError):  # udpin: no peer to send to yet
                 self._send(self.conn.mav.heartbeat_encode(
                     mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE))
+            if self.stop_flag.wait(1.0):
+                return
 
     def wait_heartbeat(self, timeout: float = 30.0) -> None:
         if not self.wait_for(lambda: self.sysid is not None, timeout):

@@ -1,0 +1,165 @@
+"""The real autopilots in tests: a SITL process, a ground-station link to fly it, and the
+bridge as a user starts it (the ``attitude-bridge run`` command, default flags), with
+what it reports (status file, log, the recorded session).
+
+Scoring a live session: the recorded tlog holds every frame with its arrival (or send)
+time, so the bridge's own ATTITUDE_QUATERNION, the autopilot's ATTITUDE_QUATERNION and
+the simulator's truth are compared on one clock, as they were on the wire (the truth
+interpolated to each estimate's moment).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from pymavlink import mavutil
+
+from estimators import metrics
+from estimators import quat as Q
+from hil.sitl import Link, Sitl
+
+REPO = Path(__file__).resolve().parents[1]
+BRIDGE_COMPID = 191
+TRUTH_TYPES = ("SIMSTATE", "HIL_STATE_QUATERNION")
+
+
+@dataclass
+class BridgeProcess:
+    """``attitude-bridge run`` in a subprocess, stopped with SIGINT like a user would."""
+
+    proc: subprocess.Popen
+    status_file: Path
+    record: Path
+    log_file: Path
+
+    @classmethod
+    def start(cls, folder: Path, connect: str, *extra: str) -> BridgeProcess:
+        status, record, log = folder / "status.json", folder / "session.tlog", folder / "log"
+        cmd = [sys.executable, "-m", "bridge.cli", "run", "--connect", connect,
+               "--status-file", str(status), "--record", str(record), *extra]
+        proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL,
+                                stderr=log.open("w"), env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        return cls(proc, status, record, log)
+
+    def status(self) -> dict:
+        try:
+            return json.loads(self.status_file.read_text())
+        except (OSError, ValueError):
+            return {}
+
+    def vehicle(self, sysid: int) -> dict:
+        return self.status().get("vehicles", {}).get(str(sysid), {})
+
+    def wait_for(self, pred, timeout: float, what: str) -> dict:
+        """Poll the status file until ``pred(status)``; AssertionError with the log."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            st = self.status()
+            if st and pred(st):
+                return st
+            if self.proc.poll() is not None:
+                break
+            time.sleep(0.2)
+        raise AssertionError(f"bridge: {what} not seen in {timeout:g} s\n{self.log()[-3000:]}")
+
+    def log(self) -> str:
+        return self.log_file.read_text(errors="replace") if self.log_file.exists() else ""
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.returncode
+
+
+def stop_all(*things: Sitl | Link | BridgeProcess | None) -> None:
+    for t in things:
+        if isinstance(t, BridgeProcess):
+            t.stop()
+        elif t is not None:
+            (t.close if isinstance(t, Link) else t.stop)()
+
+
+def _series(rows: list[tuple[float, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    if not rows:
+        return np.zeros(0), np.zeros((0, 4))
+    t = np.array([r[0] for r in rows])
+    return t, Q.normalize(np.array([r[1] for r in rows]))
+
+
+@dataclass
+class Session:
+    """One recorded live session: attitudes on the wire's clock (s since the epoch)."""
+
+    truth: tuple[np.ndarray, np.ndarray]
+    bridge: tuple[np.ndarray, np.ndarray]  # what the bridge sent (its primary)
+    autopilot: tuple[np.ndarray, np.ndarray]  # the autopilot's own ATTITUDE_QUATERNION
+    landed: list[tuple[float, int]]  # EXTENDED_SYS_STATE landed_state changes
+    armed: list[tuple[float, bool]]
+
+    @classmethod
+    def read(cls, path: Path, sysid: int) -> Session:
+        conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+        truth, bridge, own = [], [], []
+        landed: list[tuple[float, int]] = []
+        armed: list[tuple[float, bool]] = []
+        while (m := conn.recv_match()) is not None:
+            kind = m.get_type()
+            if m.get_srcSystem() != sysid:
+                continue
+            t, comp = m._timestamp, m.get_srcComponent()
+            if kind == "SIMSTATE":
+                truth.append((t, Q.from_euler(m.roll, m.pitch, m.yaw)))
+            elif kind == "HIL_STATE_QUATERNION":
+                truth.append((t, np.array(m.attitude_quaternion)))
+            elif kind == "ATTITUDE_QUATERNION":
+                (bridge if comp == BRIDGE_COMPID else own).append(
+                    (t, np.array([m.q1, m.q2, m.q3, m.q4])))
+            elif kind == "EXTENDED_SYS_STATE" and comp != BRIDGE_COMPID:
+                if not landed or landed[-1][1] != m.landed_state:
+                    landed.append((t, m.landed_state))
+            elif kind == "HEARTBEAT" and comp == 1:
+                a = bool(m.base_mode & 128)
+                if not armed or armed[-1][1] != a:
+                    armed.append((t, a))
+        conn.close()
+        return cls(_series(truth), _series(bridge), _series(own), landed, armed)
+
+    def error(self, which: str, t0: float, t1: float) -> metrics.ErrorRms:
+        """RMS error of ``which`` ("bridge" or "autopilot") over [t0, t1] against the
+        truth at the moment each of its messages crossed the wire (interpolated between
+        the truth messages around it): the attitude a consumer had, against the true one
+        at that moment, its latency included."""
+        t, q = getattr(self, which)
+        tt, qt = self.truth
+        keep = (t >= t0) & (t <= t1) & (t > tt[0]) & (t < tt[-1])
+        i = np.searchsorted(tt, t[keep])
+        w = ((t[keep] - tt[i - 1]) / (tt[i] - tt[i - 1]))[:, None]
+        a, b = qt[i - 1], qt[i]
+        b = np.where(np.sum(a * b, axis=1, keepdims=True) < 0, -b, b)  # same hemisphere
+        return metrics.rms_errors(q[keep], Q.normalize((1.0 - w) * a + w * b))
+
+    def flight_span(self) -> tuple[float, float]:
+        """From the first arming to the last disarming (take-off, flight, landing)."""
+        on = [t for t, a in self.armed if a]
+        off = [t for t, a in self.armed if not a and on and t > on[0]]
+        assert on and off, f"no armed span in the session: {self.armed}"
+        return on[0], off[-1]
+
+
+def landed_and_disarmed(status: dict, sysid: int | str) -> bool:
+    """The bridge has seen the vehicle on the ground and disarmed."""
+    fs = status.get("vehicles", {}).get(str(sysid), {}).get("flight_state", {})
+    return fs.get("state") == "on ground" and fs.get("armed") is False

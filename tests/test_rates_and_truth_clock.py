@@ -1,0 +1,143 @@
+"""Small pieces the real autopilots showed were missing: an IMU rate judged by its mean
+(ArduPilot sends 333 Hz in uneven 2.5 ms / 5 ms steps), ArduPilot's DENIED answered with
+the next interval it allows, unstamped truth placed on the board clock by its arrival,
+and rounded IMU units that repeat at rest without being a stuck sensor."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bridge.clock import ArrivalClock
+from bridge.ingest import Ingest
+from bridge.mav import mavlink
+from bridge.negotiate import ARDUPILOT, PX4, StreamNegotiation, next_slower_rate
+from imu.boards import board_profile
+from replay.dataset import Recording
+
+
+def ardupilot_steps(n: int) -> np.ndarray:
+    """Board times of ArduPilot SITL's 333 Hz RAW_IMU: 2.5, 2.5, 5 ms, repeated."""
+    return np.cumsum(np.resize([0.0025, 0.0025, 0.005], n))
+
+
+def test_the_imu_rate_is_the_mean_with_the_jitter_beside_it():
+    neg = StreamNegotiation(1, 333.3)
+    neg.start(ARDUPILOT)
+    neg.on_ack(mavlink.MAV_RESULT_ACCEPTED, 0.0)
+    for t in ardupilot_steps(600):
+        neg.observe(mavlink.MAVLINK_MSG_ID_RAW_IMU, float(t))
+    status = neg.status()
+    assert status["achieved_hz"] == pytest.approx(300.0, rel=0.01)  # 3 per 10 ms
+    assert status["jitter_ms"] == pytest.approx(1.18, abs=0.01)  # std of 2.5/2.5/5 ms
+    assert not status["below_request"]  # the median step (2.5 ms) would say 400 Hz
+
+
+def test_a_replayed_recording_has_the_mean_rate_and_its_jitter():
+    t = ardupilot_steps(3000)
+    n = len(t)
+    rec = Recording(path="x", format="npz", t=t, gyr=np.zeros((n, 3)),
+                    acc=np.tile([0.0, 0.0, -9.81], (n, 1)), mag=None, world="NED",
+                    body="FRD", source="RAW_IMU")
+    assert rec.rate_hz == pytest.approx(300.0, rel=1e-3)  # the median: 400 Hz
+    assert rec.jitter_ms == pytest.approx(1.18, abs=0.01)
+
+
+@pytest.mark.parametrize(("asked", "next_hz"), [(400.0, 1000 / 3), (1000.0, 500.0),
+                                                 (333.3333, 250.0), (250.0, 200.0)])
+def test_the_next_slower_rate_is_the_next_whole_millisecond_interval(asked, next_hz):
+    assert next_slower_rate(asked) == pytest.approx(next_hz)
+
+
+def test_ardupilots_denied_steps_the_rate_down_and_others_try_the_next_message():
+    ap = StreamNegotiation(1, 400.0)
+    ap.start(ARDUPILOT)
+    first = ap.next_send(0.0)
+    ap.on_ack(mavlink.MAV_RESULT_DENIED, 0.1)
+    again = ap.next_send(0.2)
+    assert (first.name, first.rate_hz) == ("RAW_IMU", 400.0)
+    assert (again.name, again.rate_hz) == ("RAW_IMU", pytest.approx(1000 / 3))
+    px4 = StreamNegotiation(1, 400.0)
+    px4.start(PX4)
+    px4.next_send(0.0)
+    px4.on_ack(mavlink.MAV_RESULT_DENIED, 0.1)
+    assert px4.next_send(0.2).name == "SCALED_IMU"  # DENIED means no such stream there
+
+
+def test_ardupilots_denied_stops_stepping_at_the_lowest_rate():
+    ap = StreamNegotiation(1, 60.0)
+    ap.start(ARDUPILOT)
+    ap.next_send(0.0)
+    ap.on_ack(mavlink.MAV_RESULT_DENIED, 0.1)  # next would be 58.8 Hz ... down to 50
+    rates = []
+    for k in range(20):
+        req = ap.next_send(0.2 + k)
+        if req is None or req.name != "RAW_IMU":
+            break
+        rates.append(req.rate_hz)
+        ap.on_ack(mavlink.MAV_RESULT_DENIED, 0.3 + k)
+    assert rates and min(rates) >= 50.0
+    assert ap.message == "SCALED_IMU"
+
+
+def test_arrival_clock_takes_the_least_delayed_sample_and_forgets_old_ones():
+    clock = ArrivalClock(window_s=2.0)
+    assert clock.board_time(10.0) is None
+    rng = np.random.default_rng(1)
+    offset = 100.0  # board = arrival - 100 s, plus transport delay
+    for k in range(1000):
+        arrival = 200.0 + k * 0.004
+        clock.observe(arrival - offset - rng.uniform(0.0002, 0.003), arrival)
+    assert clock.board_time(204.0) == pytest.approx(204.0 - offset, abs=0.0003)
+    for k in range(600):  # a reboot: the board clock starts again at 0
+        arrival = 205.0 + k * 0.004
+        clock.observe(k * 0.004, arrival)
+    assert clock.board_time(207.4) == pytest.approx(207.4 - 205.0, abs=1e-6)
+
+
+def _raw_imu(t_us: int, values: tuple[int, ...]) -> mavlink.MAVLink_raw_imu_message:
+    """A RAW_IMU from system 1, component 1, through real MAVLink encoding."""
+    sender = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    frame = sender.raw_imu_encode(t_us, *values, 0, 0).pack(sender)
+    return mavlink.MAVLink(None).parse_buffer(frame)[0]
+
+
+@pytest.mark.parametrize(("board", "stuck"), [("ardupilot", 0), ("gy86", 1)])
+def test_repeated_readings_are_stuck_only_for_sensor_counts(board, stuck):
+    ingest = Ingest(board_profile(board))
+    reading = (0, 0, 0, 0, 0, -1000, 200, 50, -500)
+    if board == "gy86":
+        reading = (0, 0, 0, 0, 0, 16384, 200, 50, -500)
+    for k in range(10):  # 40 ms of identical readings at 250 Hz
+        m = _raw_imu(1_000_000 + 4000 * k, reading)
+        ingest.handle_all(m, 1.0 + 0.004 * k, ingest.key_of(m))
+    counts = next(iter(ingest.sources.values())).counts
+    assert (counts["stuck"] > 0) == bool(stuck)
+
+
+def test_an_arducopter_tlog_replays_at_its_mean_rate():
+    from replay.readers import load
+
+    rec = load(Path(__file__).parent / "data" / "sitl" / "arducopter_touchdown.tlog")
+    assert rec.rate_hz == pytest.approx(333.3, abs=0.2)  # the median step says 400 Hz
+    assert rec.jitter_ms == pytest.approx(1.0, abs=0.1)  # 4 steps of 2.5 ms to one of 5 ms
+
+
+def test_a_declination_parameter_of_zero_is_not_set():
+    """ArduPilot's COMPASS_DEC is 0 until COMPASS_AUTODEC sets it from a GPS position:
+    the replay, like the live bridge, then takes the World Magnetic Model."""
+    from replay.dataset import Position
+    from replay.declination import resolve
+
+    n = 10
+    rec = Recording(path="x", format="tlog", t=np.arange(n) * 0.01, gyr=np.zeros((n, 3)),
+                    acc=np.zeros((n, 3)), mag=None, world="NED", body="FRD",
+                    source="RAW_IMU", params={"COMPASS_DEC": 0.0},
+                    position=Position(-35.3632, 149.1652, 584.0, "GPS_RAW_INT"))
+    d = resolve(rec)
+    assert d.deg == pytest.approx(12.7, abs=0.3)
+    assert "COMPASS_DEC is 0 (not set by the autopilot)" in d.source
+    rec.params["COMPASS_DEC"] = 0.2
+    assert resolve(rec).deg == pytest.approx(np.degrees(0.2))

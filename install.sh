@@ -1,19 +1,24 @@
 #!/usr/bin/env bash
 # Installs attitude-bridge with its test tools and the report extra (bokeh, matplotlib)
-# into the current Python environment (editable), plus mosquitto (the MQTT broker the
-# integration tests start) from Debian when root; then compiles the estimators ahead
+# into the current Python environment (editable), plus mosquitto and zstd (for the
+# integration tests' MQTT broker and real autopilots) from Debian when root; then compiles the estimators ahead
 # (`attitude-bridge warmup`) and smoke-tests the install. The Python part is
 # docker/setup.sh, the same script the Docker image is built with.
 set -euo pipefail
 cd "$(dirname "$0")"
-if ! command -v mosquitto >/dev/null 2>&1 && [ ! -x /usr/sbin/mosquitto ]; then
+# Debian packages: mosquitto (the MQTT tests start their own broker) and zstd (the real
+# PX4 / ArduPilot SITL runtimes in ../shared/autopilots are zstd-packed tarballs).
+missing=()
+command -v mosquitto >/dev/null 2>&1 || [ -x /usr/sbin/mosquitto ] || missing+=(mosquitto)
+command -v zstd >/dev/null 2>&1 || missing+=(zstd)
+if [ ${#missing[@]} -gt 0 ]; then
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
         apt-get update -qq
-        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mosquitto >/dev/null
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null
         # The package may start a system broker on 1883; the tests start their own.
         (service mosquitto stop || true) >/dev/null 2>&1
     else
-        echo "install.sh: mosquitto not found; install it (e.g. apt-get install mosquitto)" >&2
+        echo "install.sh: ${missing[*]} not found; install (e.g. apt-get install ${missing[*]})" >&2
     fi
 fi
 python -m pip install -q --upgrade pip

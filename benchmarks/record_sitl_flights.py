@@ -15,6 +15,8 @@ Flights (see tests/data/sitl/README.md for the message lists and rates):
   px4b  PX4 "dashes": a ~6 m/s circle, 7-8 m/s diagonal dashes with reversals, land,
         ground, a circle the other way and dashes, land
   ap    ArduPilot Copter: GUIDED 5 m/s legs, LAND, ground, GUIDED again, LAND
+  ap2   ArduPilot Copter: a 5 m/s circle, 6 m/s dashes with the nose turning, LAND,
+        ground, a circle the other way, LAND
 After recording, each file is read back with pymavlink and summarised: duration, message
 counts and rates, landed-state and arm/disarm times, max tilt (truth), horizontal acceleration.
 """
@@ -98,6 +100,11 @@ FLIGHTS = {
         Sortie([Leg(5, 5, 0), Leg(4, 5, 180), Leg(4, 4, 90, yaw=45), Leg(4, 4, 270, yaw=-45),
                 Leg(3)], ground_after=10),
         Sortie([Leg(4, 4, 45), Leg(4, 4, 225, yaw=60), Leg(3)], ground_after=5),
+    ]),
+    "ap2": Flight("ap2", "ardupilot", "arducopter_circles.tlog", 5.0, [
+        Sortie([Leg(8, 5, 0, turn=45), Leg(4, 6, 90, yaw=-45), Leg(4, 6, 270), Leg(3)],
+               ground_after=8),
+        Sortie([Leg(8, 5, 180, turn=-45, yaw=30), Leg(3)], ground_after=5),
     ]),
 }
 
@@ -238,7 +245,7 @@ def print_summary(s: dict) -> None:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=REPO / "tests" / "data" / "sitl")
-    p.add_argument("--which", default="px4a,px4b,ap",
+    p.add_argument("--which", default="px4a,px4b,ap,ap2",
                    help=f"comma-separated flights: {','.join(FLIGHTS)}")
     p.add_argument("--px4-instance", type=int, default=6,
                    help="PX4 instance (system id N+1, onboard udp 14540+N); default 6")

@@ -86,4 +86,5 @@ def test_arducopter_flight_through_the_bridge(tmp_path):
     assert ours.samples > 20 * (t1 - t0) and theirs.samples > 20 * (t1 - t0)
     assert ours.total_deg <= theirs.total_deg
     assert ours.inclination_deg <= theirs.inclination_deg
+    assert ours.total_deg <= 0.9  # README: 0.60°
     assert math.isfinite(ours.heading_deg)

@@ -163,3 +163,28 @@ def landed_and_disarmed(status: dict, sysid: int | str) -> bool:
     """The bridge has seen the vehicle on the ground and disarmed."""
     fs = status.get("vehicles", {}).get(str(sysid), {}).get("flight_state", {})
     return fs.get("state") == "on ground" and fs.get("armed") is False
+
+
+def check_flight_state_and_references(st: dict, truth_stream: str) -> None:
+    """What every real-autopilot flight must show in the bridge's status: the take-off
+    taken from the landed state, back on the ground at the end, both references asked
+    for and compared live."""
+    fs = st["flight_state"]
+    took_off = [s for s in fs["recent_switches"] if s["state"] == "airborne"]
+    assert took_off and took_off[-1]["source"] == "landed state", fs
+    assert [s["state"] for s in fs["recent_switches"]][-2:] == ["airborne", "on ground"], fs
+    assert st["imu_stream"]["reference_streams"] == {
+        "ATTITUDE_QUATERNION": "MAV_RESULT_ACCEPTED", truth_stream: "MAV_RESULT_ACCEPTED"}
+    assert {"truth", "vehicle"} <= set(st["compare"]), st["compare"]
+    assert st["vehicle_vs_truth"] is not None
+
+
+def armed_span_scores(record: Path, sysid: int, label: str
+                      ) -> tuple[metrics.ErrorRms, metrics.ErrorRms]:
+    """(bridge, autopilot) against the truth from arming to disarming, printed."""
+    session = Session.read(record, sysid)
+    t0, t1 = session.flight_span()
+    ours, theirs = session.error("bridge", t0, t1), session.error("autopilot", t0, t1)
+    print(f"{label} flight {t1 - t0:.0f} s: bridge {ours}, {label} {theirs}")
+    assert ours.samples > 20 * (t1 - t0) and theirs.samples > 20 * (t1 - t0)
+    return ours, theirs

@@ -12,7 +12,14 @@ landing) its estimate must be at least as good as PX4's own attitude.
 from __future__ import annotations
 
 import pytest
-from sitl_support import BRIDGE_COMPID, BridgeProcess, Session, landed_and_disarmed, stop_all
+from sitl_support import (
+    BRIDGE_COMPID,
+    BridgeProcess,
+    armed_span_scores,
+    check_flight_state_and_references,
+    landed_and_disarmed,
+    stop_all,
+)
 
 from hil.sitl import Leg, Link, Sitl, px4_instance
 from hil.sitl_pilot import px4_land, px4_offboard, px4_ready, px4_takeoff, set_rates
@@ -67,22 +74,11 @@ def test_px4_flight_through_the_bridge(tmp_path):
     assert st["declination"]["source"] == "parameter", st["declination"]
     assert st["declination"]["deg"] == pytest.approx(SAVED_DECLINATION_DEG, abs=0.01)
     assert st["aiding"]["source"] == "LOCAL_POSITION_NED" and st["aiding"]["used"] > 200
-    fs = st["flight_state"]
-    took_off = [s for s in fs["recent_switches"] if s["state"] == "airborne"]
-    assert took_off and took_off[-1]["source"] == "landed state", fs
-    assert [s["state"] for s in fs["recent_switches"]][-2:] == ["airborne", "on ground"], fs
-    assert imu["reference_streams"] == {"ATTITUDE_QUATERNION": "MAV_RESULT_ACCEPTED",
-                                        "HIL_STATE_QUATERNION": "MAV_RESULT_ACCEPTED"}
-    assert {"truth", "vehicle"} <= set(st["compare"]), st["compare"]
-    assert st["vehicle_vs_truth"] is not None
+    check_flight_state_and_references(st, "HIL_STATE_QUATERNION")
     # PX4 forwards the bridge's attitude from its onboard link to its GCS link
     assert pilot.seen_from[("ATTITUDE_QUATERNION", BRIDGE_COMPID)] > 100, pilot.seen_from
 
-    session = Session.read(bridge.record, sysid)
-    t0, t1 = session.flight_span()
-    ours, theirs = session.error("bridge", t0, t1), session.error("autopilot", t0, t1)
-    print(f"PX4 flight {t1 - t0:.0f} s: bridge {ours}, PX4 {theirs}")
-    assert ours.samples > 20 * (t1 - t0) and theirs.samples > 20 * (t1 - t0)
+    ours, theirs = armed_span_scores(bridge.record, sysid, "PX4")
     assert ours.total_deg <= theirs.total_deg
     assert ours.inclination_deg <= theirs.inclination_deg
     assert ours.total_deg <= 2.5  # README: 0.76-1.69° over three flights

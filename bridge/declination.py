@@ -7,7 +7,8 @@ are in true north. The declination between them is, in order of preference:
 2. the vehicle's own parameter, read with PARAM_REQUEST_READ: PX4 ``EKF2_MAG_DECL``
    [deg], ArduPilot ``COMPASS_DEC`` [rad]: what the autopilot's own estimator uses
    (both fill it from their World Magnetic Model tables). A value of exactly 0 is the
-   parameters' default before the autopilot has set it, so it is not taken;
+   parameters' default before the autopilot has set it, so it is not taken. It is read
+   again each time the vehicle disarms: PX4 saves the declination its EKF learned then;
 3. the World Magnetic Model (``imu.geomag``, WMM2025, today's date) at the vehicle's
    position (GLOBAL_POSITION_INT, GPS_RAW_INT with a fix, or HIL_STATE_QUATERNION),
    computed again when the vehicle has moved more than ``RECOMPUTE_DEG`` of latitude

@@ -483,7 +483,11 @@ class BridgeService:
             return
         vehicle.heartbeats += 1
         vehicle.last_heartbeat = now
+        was_armed = vehicle.flight.armed
         vehicle.flight.on_heartbeat(now, msg.base_mode, msg.autopilot)
+        if was_armed and vehicle.flight.armed is False and vehicle.autopilot is not None:
+            # PX4 saves the declination its EKF learned when it disarms: read it again
+            vehicle.declination.plan(vehicle.autopilot)
         self._flight_state(vehicle)
         if msg.type != vehicle.mav_type:
             if vehicle.mav_type is not None:

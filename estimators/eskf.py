@@ -87,7 +87,9 @@ lists them), so it is in-sample.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections import namedtuple
 from dataclasses import dataclass
 
 import numpy as np
@@ -212,27 +214,12 @@ class EskfParams(CommonParams):
                                             "(attenuates 70 Hz vibration 20×)")
 
 
-_PARAM_FIELDS = (
-    "update_period", "gravity", "gyro_noise", "gyro_rate_noise", "bias_rw", "bias_init", "bias_max",
-    "tilt_init", "heading_init", "velocity_rw", "velocity_prior", "velocity_scale",
-    "velocity_scale_tau", "velocity_reset_time",
-    "vel_aid_noise", "drag", "drag_sigma_init", "drag_noise", "vertical_velocity_prior",
-    "flight_accel_noise", "flight_evidence_time", "flight_switch_time", "aid_heading",
-    "aid_density", "drag_heading",
-    "mag_noise", "mag_norm_th", "mag_dip_th", "mag_ref_time", "mag_provisional_time",
-    "mag_new_time", "mag_reset_time",
-    "mag_ref_tau", "rest_gyr_th", "rest_acc_th", "rest_time", "rest_tau", "rest_noise",
-    "rest_gravity_noise", "rest_prefilter_tau", "rest_bias_th", "rest_mag_th", "aid_timeout",
-)
-(_P_PERIOD, _P_GRAV, _P_GYR_N, _P_GYR_RATE_N, _P_B_RW, _P_B_INIT, _P_B_MAX, _P_TILT0, _P_HEAD0,
- _P_V_RW, _P_V_PRIOR, _P_V_SCALE, _P_V_SCALE_TAU, _P_V_RESET, _P_AID_N, _P_DRAG, _P_DRAG0,
- _P_DRAG_N, _P_VZ_PRIOR, _P_FLIGHT_N, _P_FLIGHT_EV_T, _P_FLIGHT_SW_T,
- _P_AID_HEADING, _P_AID_DENS, _P_DRAG_HEADING,
- _P_MAG_N, _P_MAG_NORM, _P_MAG_DIP, _P_MAG_REF_T, _P_MAG_PROV_T, _P_MAG_NEW_T, _P_MAG_RESET,
- _P_MAG_REF_TAU,
- _P_REST_GYR, _P_REST_ACC, _P_REST_T, _P_REST_TAU, _P_REST_N,
- _P_REST_G_N, _P_REST_PRE_TAU, _P_REST_BIAS, _P_REST_MAG,
- _P_AID_TIMEOUT) = range(len(_PARAM_FIELDS))
+#: The kernels' parameter vector, declared once: every EskfParams field (in declaration
+#: order) plus the common aid_timeout; kernels read ``params[_I.<name>]``.
+_PARAM_FIELDS = (*(f.name for f in dataclasses.fields(EskfParams)
+                   if f.name not in {c.name for c in dataclasses.fields(CommonParams)}),
+                 "aid_timeout")
+_I = namedtuple("_ParamIndex", _PARAM_FIELDS)(*range(len(_PARAM_FIELDS)))
 
 # --- private state layout -------------------------------------------------------------
 def _layout(*sizes: int) -> tuple[int, ...]:
@@ -300,12 +287,12 @@ def _init_covariance(state: np.ndarray, params: np.ndarray) -> None:
     for k in range(_NX * _NX):
         state[_P + k] = 0.0
     for i in range(3):
-        state[_pi(_TH + i, _TH + i)] = params[_P_TILT0] ** 2
-        state[_pi(_BI + i, _BI + i)] = params[_P_B_INIT] ** 2
-        state[_pi(_VE + i, _VE + i)] = params[_P_V_PRIOR] ** 2
-    state[_pi(_TH + 2, _TH + 2)] = params[_P_HEAD0] ** 2
-    if params[_P_DRAG] > 0.0:
-        state[_pi(_MU, _MU)] = params[_P_DRAG0] ** 2
+        state[_pi(_TH + i, _TH + i)] = params[_I.tilt_init] ** 2
+        state[_pi(_BI + i, _BI + i)] = params[_I.bias_init] ** 2
+        state[_pi(_VE + i, _VE + i)] = params[_I.velocity_prior] ** 2
+    state[_pi(_TH + 2, _TH + 2)] = params[_I.heading_init] ** 2
+    if params[_I.drag] > 0.0:
+        state[_pi(_MU, _MU)] = params[_I.drag_sigma_init] ** 2
 
 
 @_core.kernel(inline="always")
@@ -348,9 +335,9 @@ def _predict_covariance(state: np.ndarray, params: np.ndarray, T: float) -> None
         state[_pi(i, 0)] -= T * (r[0] * b0 + r[1] * b1 + r[2] * b2)
         state[_pi(i, 1)] -= T * (r[3] * b0 + r[4] * b1 + r[5] * b2)
         state[_pi(i, 2)] -= T * (r[6] * b0 + r[7] * b1 + r[8] * b2)
-    qa = params[_P_GYR_N] ** 2 * T + params[_P_GYR_RATE_N] ** 2 * state[_TURN2]
-    qb = params[_P_B_RW] ** 2 * T
-    qv = params[_P_V_RW] ** 2 * T
+    qa = params[_I.gyro_noise] ** 2 * T + params[_I.gyro_rate_noise] ** 2 * state[_TURN2]
+    qb = params[_I.bias_rw] ** 2 * T
+    qv = params[_I.velocity_rw] ** 2 * T
     for i in range(3):
         state[_pi(_TH + i, _TH + i)] += qa
         state[_pi(_BI + i, _BI + i)] += qb
@@ -372,7 +359,7 @@ def _inject(state: np.ndarray, params: np.ndarray) -> None:
         state[2] = cw * qy - cx * qz + cy * w + cz * qx
         state[3] = cw * qz + cx * qy - cy * qx + cz * w
         _core.normalize_q(state)
-    bmax = params[_P_B_MAX]
+    bmax = params[_I.bias_max]
     for j in range(3):
         b = state[_core.B0 + j] + state[x + _BI + j]
         state[_core.B0 + j] = min(max(b, -bmax), bmax)
@@ -537,7 +524,7 @@ def _recover_velocity(state: np.ndarray, params: np.ndarray, r: tuple, aided: bo
         vx = state[_PEND] if math.isfinite(state[_PEND]) else state[_V]
         vy = state[_PEND + 1] if math.isfinite(state[_PEND + 1]) else state[_V + 1]
         vz = state[_PEND + 2] if math.isfinite(state[_PEND + 2]) else state[_V + 2]
-        sigma = params[_P_AID_N]
+        sigma = params[_I.vel_aid_noise]
     elif drag and state[_MUS] > 0.0 and state[_FB_T] > 0.0:
         # the body velocity the drag reading implies (vertical kept), back to the world
         ux = -state[_FB] / state[_FB_T] / state[_MUS]
@@ -546,12 +533,12 @@ def _recover_velocity(state: np.ndarray, params: np.ndarray, r: tuple, aided: bo
         vx = r[0] * ux + r[1] * uy + r[2] * uz
         vy = r[3] * ux + r[4] * uy + r[5] * uz
         vz = r[6] * ux + r[7] * uy + r[8] * uz
-        sigma = params[_P_VZ_PRIOR]
+        sigma = params[_I.vertical_velocity_prior]
     else:
         vx = vy = vz = 0.0
-        sigma = params[_P_V_PRIOR]
+        sigma = params[_I.velocity_prior]
     _reset_velocity(state, vx, vy, vz, sigma)
-    tilt = params[_P_TILT0] ** 2
+    tilt = params[_I.tilt_init] ** 2
     state[_pi(_TH, _TH)] += tilt
     state[_pi(_TH + 1, _TH + 1)] += tilt
 
@@ -560,7 +547,7 @@ def _recover_velocity(state: np.ndarray, params: np.ndarray, r: tuple, aided: bo
 def _velocity_aiding(state: np.ndarray, params: np.ndarray, T: float, r: tuple) -> bool:
     """Fuse the pending velocity measurement; True if it was used."""
     age = state[_PEND_AGE]
-    grav = params[_P_GRAV]
+    grav = params[_I.gravity]
     # v at the measurement's time ≈ v − age·(R·f̄ + g)
     ax = state[_DV] / T
     ay = state[_DV + 1] / T
@@ -583,11 +570,11 @@ def _velocity_aiding(state: np.ndarray, params: np.ndarray, T: float, r: tuple) 
             m += 1
     if m == 0:
         return False
-    rn = params[_P_AID_N] ** 2
-    if params[_P_AID_DENS] > 0.0:
-        rn = params[_P_AID_DENS] ** 2 / min(max(state[_AID_DT], T), params[_P_AID_TIMEOUT])
+    rn = params[_I.vel_aid_noise] ** 2
+    if params[_I.aid_density] > 0.0:
+        rn = params[_I.aid_density] ** 2 / min(max(state[_AID_DT], T), params[_I.aid_timeout])
     return _kalman_update(state, params, m, nu0, nu1, nu2, rn, rn, rn, _GATE[m],
-                          params[_P_AID_HEADING] <= 0.0)
+                          params[_I.aid_heading] <= 0.0)
 
 
 @_core.kernel
@@ -615,9 +602,9 @@ def _drag_update(state: np.ndarray, params: np.ndarray, T: float, r: tuple) -> b
         state[base + _VE + 2] = -mu * c2
         state[base + _MU] = -(ux if row == 0 else uy)
     fx, fy = state[_FB] / state[_FB_T], state[_FB + 1] / state[_FB_T]
-    rn = params[_P_DRAG_N] ** 2 / T
+    rn = params[_I.drag_noise] ** 2 / T
     return _kalman_update(state, params, 2, fx + mu * ux, fy + mu * uy, 0.0, rn, rn, 0.0,
-                          _GATE[2], params[_P_DRAG_HEADING] <= 0.0)
+                          _GATE[2], params[_I.drag_heading] <= 0.0)
 
 
 @_core.kernel
@@ -635,9 +622,9 @@ def _velocity_prior(state: np.ndarray, params: np.ndarray, T: float, sigma: floa
     if axes == 1:
         return _kalman_update(state, params, 1, -state[_V + 2], 0.0, 0.0, rn, 0.0, 0.0,
                               _GATE[1])
-    scale = params[_P_V_SCALE]
+    scale = params[_I.velocity_scale]
     v2 = state[_V] ** 2 + state[_V + 1] ** 2 + state[_V + 2] ** 2
-    tau = params[_P_V_SCALE_TAU]
+    tau = params[_I.velocity_scale_tau]
     if tau > 0.0:
         state[_SPEED2] += (1.0 - math.exp(-T / tau)) * (v2 - state[_SPEED2])
         v2 = state[_SPEED2]
@@ -651,8 +638,8 @@ def _velocity_prior(state: np.ndarray, params: np.ndarray, T: float, sigma: floa
 def _mag_disturbed(state: np.ndarray, params: np.ndarray, norm: float, dip: float,
                    T: float) -> bool:
     """Field norm/dip against the learned reference; True while disturbed."""
-    kc = 1.0 - math.exp(-T / params[_P_MAG_REF_TAU])
-    nth, dth = params[_P_MAG_NORM], params[_P_MAG_DIP]
+    kc = 1.0 - math.exp(-T / params[_I.mag_ref_tau])
+    nth, dth = params[_I.mag_norm_th], params[_I.mag_dip_th]
     if state[_MN_C] <= 0.0:
         state[_MN_C], state[_MD_C] = norm, dip
     if abs(norm - state[_MN_C]) < nth * state[_MN_C] and abs(dip - state[_MD_C]) < dth:
@@ -662,13 +649,13 @@ def _mag_disturbed(state: np.ndarray, params: np.ndarray, norm: float, dip: floa
     else:
         state[_MN_C], state[_MD_C], state[_CAND_T] = norm, dip, 0.0
     if state[_REF_OK] < 1.0:
-        if state[_CAND_T] >= params[_P_MAG_REF_T]:
+        if state[_CAND_T] >= params[_I.mag_ref_time]:
             state[_MN_REF], state[_MD_REF] = state[_MN_C], state[_MD_C]
             state[_REF_OK] = 1.0
             return False
         # Until then, a field that has been consistent for a moment is a provisional
         # reference: a magnet near the vehicle in its first seconds is a disturbance too.
-        if state[_REF_OK] <= 0.0 and state[_CAND_T] >= params[_P_MAG_PROV_T]:
+        if state[_REF_OK] <= 0.0 and state[_CAND_T] >= params[_I.mag_provisional_time]:
             state[_MN_REF], state[_MD_REF] = state[_MN_C], state[_MD_C]
             state[_REF_OK] = 0.5
         if state[_REF_OK] <= 0.0:
@@ -680,7 +667,7 @@ def _mag_disturbed(state: np.ndarray, params: np.ndarray, norm: float, dip: floa
         return disturbed
     disturbed = abs(norm - state[_MN_REF]) > nth * state[_MN_REF] or \
         abs(dip - state[_MD_REF]) > dth
-    if disturbed and state[_CAND_T] >= params[_P_MAG_NEW_T]:
+    if disturbed and state[_CAND_T] >= params[_I.mag_new_time]:
         state[_MN_REF], state[_MD_REF] = state[_MN_C], state[_MD_C]
         disturbed = False
     if not disturbed:
@@ -704,14 +691,14 @@ def _heading_update(state: np.ndarray, params: np.ndarray, T: float) -> None:
         return
     nu = -math.atan2(ey, ex)  # magnetic north is +x: the field's heading is the error
     # noise density over the time this reading stands for (one per update at most)
-    rn = params[_P_MAG_N] ** 2 / max(state[_MAG_DT], T)
+    rn = params[_I.mag_noise] ** 2 / max(state[_MAG_DT], T)
     state[_MAG_DT] = 0.0
     p22 = state[_pi(2, 2)]
     s = p22 + rn
     if nu * nu > _GATE[1] * s:
         state[_core.MAG_REJ] = 1.0
         state[_MAG_REJ_T] += T
-        if state[_MAG_REJ_T] > params[_P_MAG_RESET]:
+        if state[_MAG_REJ_T] > params[_I.mag_reset_time]:
             _reset_heading(state, params, nu)
         return
     state[_MAG_REJ_T] = 0.0
@@ -741,7 +728,7 @@ def _reset_heading(state: np.ndarray, params: np.ndarray, nu: float) -> None:
         state[_X + j] = 0.0
         state[_pi(2, j)] = 0.0
         state[_pi(j, 2)] = 0.0
-    state[_pi(2, 2)] = params[_P_HEAD0] ** 2
+    state[_pi(2, 2)] = params[_I.heading_init] ** 2
     state[_X + 2] = nu
     _inject(state, params)
     state[_MAG_REJ_T] = 0.0
@@ -753,8 +740,8 @@ def _rest_detection(state: np.ndarray, params: np.ndarray, gx: float, gy: float,
                     dt: float) -> None:
     """VQF's rest test, on pre-filtered samples: motor vibration (tens of Hz) is not
     motion of the vehicle and must not hide its rest."""
-    k = 1.0 - math.exp(-dt / params[_P_REST_TAU])
-    kp = 1.0 - math.exp(-dt / params[_P_REST_PRE_TAU])
+    k = 1.0 - math.exp(-dt / params[_I.rest_tau])
+    kp = 1.0 - math.exp(-dt / params[_I.rest_prefilter_tau])
     if state[_LP_OK] <= 0.0:
         for j in range(3):
             g = (gx, gy, gz)[j]
@@ -772,8 +759,8 @@ def _rest_detection(state: np.ndarray, params: np.ndarray, gx: float, gy: float,
     # The low-passed gyro must be near the bias estimate (VQF's bias clip: a steady slow
     # turn is not rest), unless the magnetometer shows the body is not turning: then
     # any offset an uncalibrated gyro may have (bias_max) is taken for what it is.
-    lim = params[_P_B_MAX] if state[_MAG_STEADY] > 0.0 else params[_P_REST_BIAS]
-    steady = acc_ok and state[_LP_OK] > 0.0 and dg < params[_P_REST_GYR] ** 2 \
+    lim = params[_I.bias_max] if state[_MAG_STEADY] > 0.0 else params[_I.rest_bias_th]
+    steady = acc_ok and state[_LP_OK] > 0.0 and dg < params[_I.rest_gyr_th] ** 2 \
         and abs(state[_GLP] - state[_core.B0]) < lim \
         and abs(state[_GLP + 1] - state[_core.B0 + 1]) < lim \
         and abs(state[_GLP + 2] - state[_core.B0 + 2]) < lim
@@ -783,7 +770,7 @@ def _rest_detection(state: np.ndarray, params: np.ndarray, gx: float, gy: float,
             state[_APF + j] += kp * ((ax, ay, az)[j] - state[_APF + j])
             state[_ALP + j] += k * (state[_APF + j] - state[_ALP + j])
             da += (state[_APF + j] - state[_ALP + j]) ** 2
-        steady = steady and da < params[_P_REST_ACC] ** 2
+        steady = steady and da < params[_I.rest_acc_th] ** 2
     state[_REST_T] = state[_REST_T] + dt if steady else 0.0
 
 
@@ -798,8 +785,8 @@ def _mag_steadiness(state: np.ndarray, params: np.ndarray, mx: float, my: float,
         return
     n = math.sqrt(mx * mx + my * my + mz * mz)
     ux, uy, uz = mx / n, my / n, mz / n
-    k = 1.0 - math.exp(-dt / params[_P_REST_TAU])
-    kp = 1.0 - math.exp(-dt / params[_P_REST_PRE_TAU])
+    k = 1.0 - math.exp(-dt / params[_I.rest_tau])
+    kp = 1.0 - math.exp(-dt / params[_I.rest_prefilter_tau])
     if state[_MLP] == 0.0 and state[_MLP + 1] == 0.0 and state[_MLP + 2] == 0.0:
         for j in range(3):
             state[_MPF + j] = state[_MLP + j] = (ux, uy, uz)[j]
@@ -808,7 +795,7 @@ def _mag_steadiness(state: np.ndarray, params: np.ndarray, mx: float, my: float,
         state[_MPF + j] += kp * ((ux, uy, uz)[j] - state[_MPF + j])
         state[_MLP + j] += k * (state[_MPF + j] - state[_MLP + j])
         d2 += (state[_MPF + j] - state[_MLP + j]) ** 2
-    state[_MAG_STEADY] = 1.0 if d2 < params[_P_REST_MAG] ** 2 else 0.0
+    state[_MAG_STEADY] = 1.0 if d2 < params[_I.rest_mag_th] ** 2 else 0.0
 
 
 @_core.kernel
@@ -824,7 +811,7 @@ def _rest_update(state: np.ndarray, params: np.ndarray, T: float, aided: bool) -
     _clear_rows(state, 3)
     for i in range(3):
         state[_H + i * _NX + _BI + i] = 1.0
-    rn = params[_P_REST_N] ** 2 / T
+    rn = params[_I.rest_noise] ** 2 / T
     _kalman_update(state, params, 3, state[_GLP] - state[_core.B0],
                    state[_GLP + 1] - state[_core.B0 + 1], state[_GLP + 2] - state[_core.B0 + 2],
                    rn, rn, rn, 0.0)
@@ -834,11 +821,11 @@ def _rest_update(state: np.ndarray, params: np.ndarray, T: float, aided: bool) -
     ft = state[_FB_T]
     fx, fy, fz = state[_FB] / ft, state[_FB + 1] / ft, state[_FB + 2] / ft
     wx, wy, _ = _core.body_to_world(state, fx, fy, fz)
-    grav = params[_P_GRAV]
+    grav = params[_I.gravity]
     _clear_rows(state, 2)
     state[_H + _TH + 1] = grav
     state[_H + _NX + _TH] = -grav
-    rn = params[_P_REST_G_N] ** 2 / T
+    rn = params[_I.rest_gravity_noise] ** 2 / T
     _kalman_update(state, params, 2, wx, wy, 0.0, rn, rn, 0.0, _GATE[2])
 
 
@@ -859,13 +846,13 @@ def _drag_model_on(state: np.ndarray, params: np.ndarray, T: float, r: tuple) ->
     of one per ``flight_switch_time``. The chain starts on the ground (a vehicle is
     powered up there), and a tie stays on the ground, where the model is the one that
     never needs the vehicle to fly."""
-    if params[_P_DRAG] <= 0.0:
+    if params[_I.drag] <= 0.0:
         state[_core.AIR_MODEL] = 0.0
         return False
     if state[_FB_T] > 0.0:
         ft = state[_FB_T]
         fx, fy = state[_FB] / ft, state[_FB + 1] / ft
-        grav = params[_P_GRAV]
+        grav = params[_I.gravity]
         gx, gy = -grav * r[6], -grav * r[7]  # (Rᵀ·(0, 0, −g))_xy
         vx, vy, vz = state[_V], state[_V + 1], state[_V + 2]
         mu = state[_MUS]
@@ -873,9 +860,9 @@ def _drag_model_on(state: np.ndarray, params: np.ndarray, T: float, r: tuple) ->
         dy = -mu * (r[1] * vx + r[4] * vy + r[7] * vz)
         e_ground = (fx - gx) ** 2 + (fy - gy) ** 2
         e_air = (fx - dx) ** 2 + (fy - dy) ** 2
-        llr = (e_ground - e_air) / (2.0 * params[_P_FLIGHT_N] ** 2) * \
-            min(T / params[_P_FLIGHT_EV_T], 1.0)
-        eps = min(T / params[_P_FLIGHT_SW_T], 0.5)
+        llr = (e_ground - e_air) / (2.0 * params[_I.flight_accel_noise] ** 2) * \
+            min(T / params[_I.flight_evidence_time], 1.0)
+        eps = min(T / params[_I.flight_switch_time], 0.5)
         p = state[_P_AIR] * (1.0 - eps) + (1.0 - state[_P_AIR]) * eps
         llr = max(min(llr, 50.0), -50.0)
         odds = p / (1.0 - p) * math.exp(llr)
@@ -895,12 +882,12 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
     if state[_FB_T] <= 0.0:
         # Nothing measured the specific force: the velocity says nothing about the tilt.
         _reset_velocity(state, state[_V], state[_V + 1], state[_V + 2],
-                        math.sqrt(max(state[_pi(_VE, _VE)], 0.0)) + params[_P_V_PRIOR])
+                        math.sqrt(max(state[_pi(_VE, _VE)], 0.0)) + params[_I.velocity_prior])
         state[_PEND] = state[_PEND + 1] = state[_PEND + 2] = math.nan
         state[_core.ACC_REJ] = 1.0
     now = state[_core.RUN_T]
-    aided = now - state[_AID_T] <= params[_P_AID_TIMEOUT]
-    at_rest = state[_REST_T] >= params[_P_REST_T]
+    aided = now - state[_AID_T] <= params[_I.aid_timeout]
+    at_rest = state[_REST_T] >= params[_I.rest_time]
     drag = _drag_model_on(state, params, T, r)
     if at_rest:
         _rest_update(state, params, T, aided and not drag)
@@ -923,10 +910,10 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
             else:
                 state[_core.ACC_REJ] = 1.0
             if not aided:
-                _velocity_prior(state, params, T, params[_P_VZ_PRIOR], 1)
+                _velocity_prior(state, params, T, params[_I.vertical_velocity_prior], 1)
         elif not aided or state[_core.FLIGHT] == _core.FLIGHT_GROUND:
             # on the ground a vehicle moves at walking pace at most, whatever a GPS says
-            if _velocity_prior(state, params, T, params[_P_V_PRIOR], 3, not at_rest):
+            if _velocity_prior(state, params, T, params[_I.velocity_prior], 3, not at_rest):
                 state[_V_OK_T] = now
             else:
                 state[_core.ACC_REJ] = 1.0
@@ -936,7 +923,7 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
                     # so it is re-anchored now instead of after velocity_reset_time.
                     _recover_velocity(state, params, r, aided, drag)
                     state[_REST_ANCHORED] = 1.0
-        if now - state[_V_OK_T] > params[_P_V_RESET]:
+        if now - state[_V_OK_T] > params[_I.velocity_reset_time]:
             _recover_velocity(state, params, _rotation(state), aided, drag)
     state[_PEND] = state[_PEND + 1] = state[_PEND + 2] = math.nan
     if state[_MAG_OK] > 0.0:
@@ -975,7 +962,7 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
         _first_step(state, params, mx, my, mz, mag_ok)
     b0, b1, b2 = state[_core.B0], state[_core.B0 + 1], state[_core.B0 + 2]
     turn2 = (gx - b0) ** 2 + (gy - b1) ** 2 + (gz - b2) ** 2  # |ω − b|²
-    grav = params[_P_GRAV]
+    grav = params[_I.gravity]
     if acc_ok:
         state[_FB] += ax * dt
         state[_FB + 1] += ay * dt
@@ -1030,7 +1017,7 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
     elif math.isfinite(state[_PEND]) or math.isfinite(state[_PEND + 1]) or \
             math.isfinite(state[_PEND + 2]):
         state[_PEND_AGE] += dt  # a measurement waiting for the update grows older
-    if state[_ACC_T] + 1e-9 * dt < params[_P_PERIOD]:
+    if state[_ACC_T] + 1e-9 * dt < params[_I.update_period]:
         return
     T = state[_ACC_T]
     _kalman_step(state, params, T)

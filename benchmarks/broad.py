@@ -19,7 +19,6 @@ transient, so reproducing Mahony to a few thousandths of a degree needs that sam
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 import time
@@ -32,29 +31,22 @@ if __package__ in (None, ""):  # run as a script: use this checkout's estimators
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import estimators
-from estimators import quat as Q
-from estimators.metrics import ErrorRms, rms_errors
+from estimators.metrics import ErrorRms
+from replay.broad import (
+    PUBLISHED_MADGWICK,
+    PUBLISHED_MAHONY,
+    Trial,
+    broad_example_init,
+    load_published,
+    load_trials,
+    run_estimator,
+    score,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "broad"
 
-PUBLISHED_MAHONY = {"kp": 0.74, "ki": 0.0012, "mag_mode": "full"}  # reference C code
-PUBLISHED_MADGWICK = {"beta": 0.12, "original_mag_quirk": True}
 REPRODUCTION_TOLERANCE_DEG = 0.05
-_Q_Z90 = np.array([np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)])  # +90° about z: NWU x -> ENU y
-
-
-@dataclass(frozen=True)
-class Trial:
-    """One BROAD recording."""
-
-    name: str
-    rate_hz: float
-    gyr: np.ndarray
-    acc: np.ndarray
-    mag: np.ndarray
-    quat_ref: np.ndarray
-    movement: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -64,55 +56,6 @@ class Row:
     label: str
     errors: dict[str, ErrorRms]
     inclination_only: bool = False
-
-
-def load_trials(data_dir: Path) -> list[Trial]:
-    """Every ``*.npz`` trial in ``data_dir``, sorted by name."""
-    files = sorted(data_dir.glob("*.npz"))
-    if not files:
-        raise FileNotFoundError(f"no BROAD .npz trials in {data_dir}")
-    trials = []
-    for f in files:
-        with np.load(f) as d:
-            trials.append(Trial(f.stem, float(d["rate"]),
-                                *(np.ascontiguousarray(d[k], dtype=float)
-                                  for k in ("gyr", "acc", "mag", "quat_ref")),
-                                d["movement"].astype(bool)))
-    return trials
-
-
-def load_published(data_dir: Path) -> dict[str, dict[str, ErrorRms]]:
-    """published_case_study.csv as {"mahony"|"madgwick": {trial: ErrorRms}}."""
-    path = data_dir / "published_case_study.csv"
-    out: dict[str, dict[str, ErrorRms]] = {"madgwick": {}, "mahony": {}}
-    if not path.exists():
-        return out
-    with open(path, newline="") as f:
-        for r in csv.DictReader(f):
-            out["madgwick"][r["trial"]] = ErrorRms(
-                float(r["madgwick_b0.12_total"]), float(r["madgwick_heading"]),
-                float(r["madgwick_incl"]), 0)
-            out["mahony"][r["trial"]] = ErrorRms(
-                float(r["mahony_kp0.74_ki0.0012_total"]), float(r["mahony_heading"]),
-                float(r["mahony_incl"]), 0)
-    return out
-
-
-def broad_example_init(acc: np.ndarray, mag: np.ndarray) -> np.ndarray:
-    """The initial orientation (sensor -> ENU) the BROAD example code gives the filters.
-
-    That code stacks the unit vectors (-m_h, up × (-m_h), up), i.e. the south, east and up
-    axes in sensor coordinates, as the *columns* of a matrix and converts it as if it were
-    the sensor-to-world rotation; then rotates by +90° about z "to ENU". The result is the
-    inverse of the sensor's attitude relative to south-east-up. Reproduced here only to
-    match the published numbers; the estimators' own start (q0=None) is the correct one.
-    """
-    up = acc / np.linalg.norm(acc)
-    south = -(mag - up * (up @ mag))
-    south /= np.linalg.norm(south)
-    east = np.cross(up, south)
-    r = np.column_stack([south, east, up])
-    return Q.multiply(_Q_Z90, Q.from_dcm(r))
 
 
 def parse_spec(spec: str) -> tuple[str, dict[str, float | bool | str]]:
@@ -135,13 +78,6 @@ def parse_spec(spec: str) -> tuple[str, dict[str, float | bool | str]]:
     return name.strip(), params
 
 
-def run_estimator(name: str, trial: Trial, use_mag: bool = True,
-                  q0: np.ndarray | None = None, **params: float | bool | str) -> np.ndarray:
-    """(N, 4) sensor -> ENU quaternions from one compiled batch run."""
-    return estimators.batch(name, trial.gyr, trial.acc, trial.mag if use_mag else None,
-                            rate_hz=trial.rate_hz, world="ENU", q0=q0, **params)
-
-
 def run_vqf_online(trial: Trial) -> np.ndarray:
     """VQF (causal, sample by sample like our filters), default parameters, 9D; ENU."""
     import vqf
@@ -154,10 +90,6 @@ def run_vqf(trial: Trial) -> np.ndarray:
     import vqf
 
     return vqf.offlineVQF(trial.gyr, trial.acc, trial.mag, 1.0 / trial.rate_hz)["quat9D"]
-
-
-def score(trial: Trial, q: np.ndarray) -> ErrorRms:
-    return rms_errors(q, trial.quat_ref, trial.movement)
 
 
 def mean_errors(errors: list[ErrorRms]) -> ErrorRms:

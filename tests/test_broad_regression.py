@@ -1,6 +1,6 @@
 """BROAD regression: the paper's published Mahony and Madgwick numbers on one dev trial.
 
-Started like the BROAD example code (benchmarks.broad.broad_example_init), Mahony with
+Started like the BROAD example code (replay.broad.broad_example_init), Mahony with
 Kp = 0.74, Ki = 0.0012 and Madgwick with beta = 0.12 plus the original code's
 magnetometer quirk reproduce published_case_study.csv to ~0.0002°; 0.05° is far inside
 what any real change to the filters moves (e.g. the quirk alone is ~1° on this trial,
@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 import estimators
-from benchmarks.broad import (
+from estimators import quat as Q
+from replay.broad import (
     PUBLISHED_MADGWICK,
     PUBLISHED_MAHONY,
     broad_example_init,
@@ -22,7 +23,6 @@ from benchmarks.broad import (
     run_estimator,
     score,
 )
-from estimators import quat as Q
 
 TRIAL = "01_undisturbed_slow_rotation_A"
 TOLERANCE_DEG = 0.05

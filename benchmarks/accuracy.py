@@ -211,7 +211,7 @@ def sitl_trials(folders: list[Path]) -> list[Trial]:
 def _emulated(name: str, profile: str, seconds: float, seed: int, gps: bool, kind: str
               ) -> Trial:
     """One emulator recording as the calibrated GY-86 board measures it, scored whole."""
-    from bridge.calibrate_cli import emulator_samples
+    from bridge.app.calibrate_cli import emulator_samples
     from hil import EmulatorConfig, simulate
     from hil.config import GpsConfig
     from imu.calibration_fit import fit_calibration

@@ -46,10 +46,10 @@ REPO = Path(__file__).resolve().parents[1]
 FLOOD_SENDER = REPO / "benchmarks" / "flood_sender.py"
 sys.path.insert(0, str(REPO))
 
-from bridge.codec import signing_key_from_text  # noqa: E402
-from bridge.config import BridgeConfig  # noqa: E402
-from bridge.mav import mavlink  # noqa: E402
-from bridge.service import BridgeService  # noqa: E402
+from bridge.app.config import BridgeConfig  # noqa: E402
+from bridge.app.service import BridgeService  # noqa: E402
+from bridge.wire.codec import signing_key_from_text  # noqa: E402
+from bridge.wire.mav import mavlink  # noqa: E402
 from estimators import quat as Q  # noqa: E402
 from imu import boards  # noqa: E402
 
@@ -156,7 +156,7 @@ def free_port() -> int:
 def start_bridge(port: int, *extra: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(REPO))
     proc = subprocess.Popen(
-        [sys.executable, "-m", "bridge.cli", "run", "--connect", f"udpin:127.0.0.1:{port}",
+        [sys.executable, "-m", "bridge.app.cli", "run", "--connect", f"udpin:127.0.0.1:{port}",
          "--estimator", "eskf", *extra], cwd=REPO, env=env, stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL, text=True)
     # Up once it answers a heartbeat with its own.

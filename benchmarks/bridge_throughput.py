@@ -38,9 +38,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bridge.config import BridgeConfig
-from bridge.mav import mavlink
-from bridge.service import BridgeService
+from bridge.app.config import BridgeConfig
+from bridge.app.service import BridgeService
+from bridge.wire.mav import mavlink
 
 #: The core the bridge process is pinned to; the sender process uses the others.
 BRIDGE_CPU = 0

@@ -30,7 +30,7 @@ def measure(rate: float, duration: float, profile: str) -> dict[str, float]:
     sock.settimeout(1.0)
     port = sock.getsockname()[1]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "bridge.cli", "hil", "--target", f"udp:127.0.0.1:{port}",
+        [sys.executable, "-m", "bridge.app.cli", "hil", "--target", f"udp:127.0.0.1:{port}",
          "--rate", str(rate), "--duration", str(duration), "--profile", profile],
         env=dict(os.environ, PYTHONPATH=str(REPO)), stderr=subprocess.DEVNULL)
     arrivals, seen_any = [], False

@@ -18,8 +18,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bridge.ingest import Ingest
-from bridge.mav import mavlink
+from bridge.vehicle.ingest import Ingest
+from bridge.wire.mav import mavlink
 from imu.boards import gy86
 
 N = 5000

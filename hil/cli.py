@@ -12,7 +12,7 @@ import sys
 from dataclasses import fields
 from pathlib import Path
 
-from bridge.cli import seconds  # the command line's shared option types
+from bridge.app.cli import seconds  # the command line's shared option types
 
 from .config import IMU_MESSAGES, EmulatorConfig
 from .environment import HOME_ALT_M, HOME_LAT_DEG, HOME_LON_DEG, Environment

@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bridge.config import BridgeConfig
-from bridge.mav import mavlink
-from bridge.service import BridgeService
+from bridge.app.config import BridgeConfig
+from bridge.app.service import BridgeService
+from bridge.wire.mav import mavlink
 from estimators import quat as Q
 from imu import boards
 

@@ -47,7 +47,7 @@ class BridgeProcess:
     @classmethod
     def start(cls, folder: Path, connect: str, *extra: str) -> BridgeProcess:
         status, record, log = folder / "status.json", folder / "session.tlog", folder / "log"
-        cmd = [sys.executable, "-m", "bridge.cli", "run", "--connect", connect,
+        cmd = [sys.executable, "-m", "bridge.app.cli", "run", "--connect", connect,
                "--status-file", str(status), "--record", str(record), *extra]
         proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL,
                                 stderr=log.open("w"), env={**os.environ, "PYTHONUNBUFFERED": "1"})

@@ -27,10 +27,10 @@ from bridge_support import (
 )
 
 import estimators
-from bridge.aiding import MAX_FUTURE_S, WRAP_US_S, VelocityAiding
-from bridge.calibrate_cli import emulator_samples
-from bridge.emulator import emulator_declination_deg
-from bridge.mav import mavlink
+from bridge.app.calibrate_cli import emulator_samples
+from bridge.app.emulator import emulator_declination_deg
+from bridge.vehicle.aiding import MAX_FUTURE_S, WRAP_US_S, VelocityAiding
+from bridge.wire.mav import mavlink
 from estimators import metrics
 from estimators import quat as Q
 from estimators.eskf import MULTIROTOR_DRAG_PER_S

@@ -34,8 +34,8 @@ from bridge_support import (
     wait_until,
 )
 
-from bridge.codec import signing_key_from_text
-from bridge.mav import mavlink
+from bridge.wire.codec import signing_key_from_text
+from bridge.wire.mav import mavlink
 from estimators import quat as Q
 
 OMEGA = np.radians([0.0, 0.0, 30.0])

@@ -11,11 +11,11 @@ import pytest
 from bridge_support import UdpListener, async_test, running_bridge, wait_until
 
 import estimators
-from bridge.config import BridgeConfig
-from bridge.declination import NONE, OPTION, PARAMETER, WMM, Declination
-from bridge.emulator import emulator_config, emulator_declination_deg
-from bridge.mav import mavlink
-from bridge.table import render
+from bridge.app.config import BridgeConfig
+from bridge.app.emulator import emulator_config, emulator_declination_deg
+from bridge.app.table import render
+from bridge.vehicle.declination import NONE, OPTION, PARAMETER, WMM, Declination
+from bridge.wire.mav import mavlink
 from estimators import metrics
 from estimators import quat as Q
 from hil import Emulator, EmulatorConfig, GpsConfig, simulate
@@ -167,8 +167,8 @@ def test_built_in_emulator_follows_the_bridge_settings():
 
 
 def test_declination_options_are_degrees_under_both_names():
-    from bridge.cli import build_parser
-    from bridge.run_cli import config_from_args
+    from bridge.app.cli import build_parser
+    from bridge.app.run_cli import config_from_args
 
     for flag in ("--declination-deg", "--declination"):
         args = build_parser().parse_args(["run", "--connect", "udpin:127.0.0.1:0", flag, "-4.5",

@@ -21,8 +21,8 @@ from bridge_support import (
     stream_emulator,
 )
 
-from bridge.mav import mavlink
-from bridge.table import render
+from bridge.app.table import render
+from bridge.wire.mav import mavlink
 from estimators import quat as Q
 from hil import EmulatorConfig
 from imu import flight_state as fs

@@ -16,7 +16,7 @@ import pytest
 from bridge_support import UdpListener, async_test, running_bridge, stream_emulator
 
 import estimators
-from bridge.emulator import emulator_declination_deg
+from bridge.app.emulator import emulator_declination_deg
 from estimators import metrics
 from estimators import quat as Q
 from estimators.eskf import MULTIROTOR_DRAG_PER_S

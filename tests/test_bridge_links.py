@@ -26,8 +26,8 @@ from bridge_support import (
     wait_until,
 )
 
-from bridge.links import TcpLink, parse_url
-from bridge.mav import mavlink
+from bridge.wire.links import TcpLink, parse_url
+from bridge.wire.mav import mavlink
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -137,7 +137,7 @@ async def test_run_command_serves_and_stops_on_sigint():
     in_port = free_udp_port()
     env = dict(os.environ, PYTHONPATH=str(REPO))
     proc = subprocess.Popen(
-        [sys.executable, "-m", "bridge.cli", "run", "--connect", f"udpin:127.0.0.1:{in_port}",
+        [sys.executable, "-m", "bridge.app.cli", "run", "--connect", f"udpin:127.0.0.1:{in_port}",
          "--out", f"udpout:127.0.0.1:{out_port}", "--estimator", "quaternion"],
         cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -173,7 +173,7 @@ def test_run_refuses_a_link_that_cannot_exist_at_start(url, why):
     """A host name that does not resolve or a serial device that is not there is a typo:
     one line and exit 2 at once, not retries for ever (here: until --duration ends)."""
     out = subprocess.run(
-        [sys.executable, "-m", "bridge.cli", "run", "--connect", url, "--estimator",
+        [sys.executable, "-m", "bridge.app.cli", "run", "--connect", url, "--estimator",
          "quaternion", "--duration", "2"],
         cwd=REPO, capture_output=True, text=True, timeout=60)
     assert out.returncode == 2, out.stderr
@@ -189,7 +189,7 @@ async def test_refused_tcp_port_is_retried_and_told_once(caplog):
         autopilot.bind(("127.0.0.1", 0))  # bound, not listening: connections are refused
         port = autopilot.getsockname()[1]
         link = TcpLink(parse_url(f"tcp:127.0.0.1:{port}"))
-        with caplog.at_level(logging.WARNING, logger="bridge.links"):
+        with caplog.at_level(logging.WARNING, logger="bridge.wire.links"):
             await link.start()
             try:
                 retried = await wait_until(lambda: link.stats.reconnects >= 3)

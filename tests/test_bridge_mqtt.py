@@ -28,7 +28,7 @@ from bridge_support import (
     wait_until,
 )
 
-from bridge.table import summary
+from bridge.app.table import summary
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -150,6 +150,7 @@ async def test_topics_json_and_broker_outage(broker):
         restarted = time.monotonic()
         resumed = await wait_until(lambda: expected <= sub.topics(since=restarted), 7.0)
         await stream
+        stream_done = time.monotonic()
         mqtt_stats = bridge.mqtt.stats
     await asyncio.sleep(0.3)
     await sub.stop()
@@ -181,7 +182,10 @@ async def test_topics_json_and_broker_outage(broker):
     assert set(est["euler_deg"]) == {"roll", "pitch", "yaw"}
     second = sub.last("attitude/1/quaternion-2")
     assert second["params"] == {"exact": False} and second["primary"] is False
-    status = sub.last("attitude/1/status")
+    # the last status written while the emulator was still streaming (one written after
+    # it stopped counts the samples of a shorter stretch)
+    status = [p for when, t, p in sub.messages
+              if t == "attitude/1/status" and when <= stream_done][-1]
     assert status["input_rate_hz"] > 100 and status["online"] is True
     assert status["sources"] == [est["source"]] and status["primary"] == est["source"]
     assert set(status["drops"]) >= {"duplicate", "reordered", "jump", "backwards"}
@@ -201,7 +205,7 @@ async def test_topics_json_and_broker_outage(broker):
 @async_test
 async def test_unreachable_broker_is_a_warning_at_start_and_not_every_attempt(caplog):
     port = free_tcp_port()  # nothing listens there
-    caplog.set_level(logging.DEBUG, logger="bridge.mqtt")
+    caplog.set_level(logging.DEBUG, logger="bridge.publish.mqtt")
     async with running_bridge(estimators=["quaternion"], mqtt=f"mqtt://127.0.0.1:{port}"
                               ) as bridge:
         await asyncio.sleep(3.0)  # several attempts (backoff from 0.25 s)
@@ -223,7 +227,7 @@ async def test_last_will_says_offline_when_the_bridge_dies(broker):
     env = {**os.environ, "PYTHONPATH": str(REPO),
            "ATTITUDE_BRIDGE_MQTT": f"mqtt://127.0.0.1:{broker.port}"}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "bridge.cli", "run", "--connect", f"udpin:127.0.0.1:{port}",
+        [sys.executable, "-m", "bridge.app.cli", "run", "--connect", f"udpin:127.0.0.1:{port}",
          "--estimator", "quaternion", "-q"], cwd=REPO, env=env,
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:

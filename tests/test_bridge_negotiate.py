@@ -13,9 +13,9 @@ import logging
 import pytest
 from bridge_support import UdpListener, async_test, running_bridge, wait_until
 
-from bridge.emulator import emulator_declination_deg
-from bridge.ingest import IMU_MESSAGE_NAMES
-from bridge.mav import mavlink
+from bridge.app.emulator import emulator_declination_deg
+from bridge.vehicle.ingest import IMU_MESSAGE_NAMES
+from bridge.wire.mav import mavlink
 from hil import Emulator, EmulatorConfig
 
 IMU_RATE = 250.0

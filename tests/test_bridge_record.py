@@ -14,9 +14,9 @@ import os
 import numpy as np
 from bridge_support import async_test
 
-from bridge.cli import main
-from bridge.config import BridgeConfig
-from bridge.service import BridgeService
+from bridge.app.cli import main
+from bridge.app.config import BridgeConfig
+from bridge.app.service import BridgeService
 from estimators import quat as Q
 from hil import Emulator, EmulatorConfig
 

@@ -25,8 +25,8 @@ from bridge_support import (
     wait_until,
 )
 
-from bridge.codec import signing_key_from_text
-from bridge.mav import mavlink
+from bridge.wire.codec import signing_key_from_text
+from bridge.wire.mav import mavlink
 
 OMEGA = np.radians([0.0, 0.0, 40.0])  # yaw rate of the test motion
 

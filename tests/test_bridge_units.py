@@ -20,19 +20,19 @@ from bridge_support import (
     wait_until,
 )
 
-from bridge import clock as C
-from bridge.admission import Admission
-from bridge.codec import MavCodec, SigningConfig, load_signing_key, signing_key_from_text
-from bridge.compare import compare_series
-from bridge.config import BridgeConfig
-from bridge.ingest import Ingest, SourceKey
-from bridge.kernelfilter import MARK_LEN, SAMPLE, KernelFilter
-from bridge.links import open_link, parse_url
-from bridge.mav import mavlink
-from bridge.mqtt import MqttSettings
-from bridge.output import AttitudeOutput
-from bridge.pipeline import Estimate
-from bridge.sequence import SequenceTracker
+from bridge.vehicle import clock as C
+from bridge.app.config import BridgeConfig
+from bridge.estimate.compare import compare_series
+from bridge.estimate.pipeline import Estimate
+from bridge.publish.mqtt import MqttSettings
+from bridge.publish.output import AttitudeOutput
+from bridge.vehicle.ingest import Ingest, SourceKey
+from bridge.wire.admission import Admission
+from bridge.wire.codec import MavCodec, SigningConfig, load_signing_key, signing_key_from_text
+from bridge.wire.kernelfilter import MARK_LEN, SAMPLE, KernelFilter
+from bridge.wire.links import open_link, parse_url
+from bridge.wire.mav import mavlink
+from bridge.wire.sequence import SequenceTracker
 from estimators import quat as Q
 from estimators.spec import EstimatorSpec
 from imu.boards import gy86

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from bridge_support import MAG_NED, G, euler_q, gy86_counts
 
-from bridge.calibrate_cli import log_samples
-from bridge.cli import main as cli_main
-from bridge.config import BridgeConfig
-from bridge.ingest import Ingest
-from bridge.mav import mavlink
+from bridge.app.calibrate_cli import log_samples
+from bridge.app.cli import main as cli_main
+from bridge.app.config import BridgeConfig
+from bridge.vehicle.ingest import Ingest
+from bridge.wire.mav import mavlink
 from estimators import quat as Q
 from imu.boards import gy86
 from imu.calibration import SensorCalibration
@@ -344,8 +344,8 @@ def test_bridge_config_checks_the_calibration_file(tmp_path):
 
 
 def test_run_command_takes_calibration_option_over_the_settings_file(tmp_path):
-    from bridge.cli import build_parser
-    from bridge.run_cli import config_from_args
+    from bridge.app.cli import build_parser
+    from bridge.app.run_cli import config_from_args
 
     (tmp_path / "a.toml").write_text(known_calibration().to_toml())
     (tmp_path / "b.toml").write_text(SensorCalibration().to_toml())

@@ -18,8 +18,8 @@ import pytest
 from bridge_support import UdpListener, running_bridge, stream_emulator
 
 import estimators
-from bridge.calibrate_cli import emulator_samples
-from bridge.emulator import emulator_declination_deg
+from bridge.app.calibrate_cli import emulator_samples
+from bridge.app.emulator import emulator_declination_deg
 from estimators import metrics
 from estimators import quat as Q
 from hil import EmulatorConfig, simulate
@@ -195,8 +195,8 @@ async def stream_through_bridge(cfg: EmulatorConfig, calibration: str) -> UdpLis
 def test_calibrate_command_reads_a_raw_imu_tlog(tmp_path, capsys):
     """The emulated session's RAW_IMU integers in a tlog, through `attitude-bridge
     calibrate --board gy86`: the same calibration as fitted from the SI arrays."""
-    from bridge.cli import main as cli_main
-    from bridge.mav import mavlink
+    from bridge.app.cli import main as cli_main
+    from bridge.wire.mav import mavlink
 
     seed = SEEDS[0]
     cfg = EmulatorConfig(profile="calibration", duration_s=calibration_duration_s() + 1.0,

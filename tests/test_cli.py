@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from bridge.cli import main
-from bridge.config import BridgeConfig, check_rotation
-from bridge.run_cli import config_from_args
+from bridge.app.cli import main
+from bridge.app.config import BridgeConfig, check_rotation
+from bridge.app.run_cli import config_from_args
 from estimators.spec import EstimatorSpec
 
 REPO = Path(__file__).resolve().parents[1]
@@ -101,7 +101,7 @@ def test_durations_must_be_finite_and_not_negative(tmp_path, capsys):
         assert exit_.value.code == 2 and err.count("\n") == 1, (argv, err)
         assert err.startswith(f"attitude-bridge {argv[0]}: error: argument {argv[-2]}: must "
                               f"be a finite number of seconds >= 0, got '{argv[-1]}'"), err
-    procs = [subprocess.Popen([sys.executable, "-m", "bridge.cli", "hil", "--target",
+    procs = [subprocess.Popen([sys.executable, "-m", "bridge.app.cli", "hil", "--target",
                                "udp:127.0.0.1:9", "--fast", "--duration", value],
                               cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                               text=True) for value in ("nan", "-5")]
@@ -124,7 +124,7 @@ def test_health_without_a_running_bridge_is_unhealthy_in_one_line(tmp_path, caps
 
 def test_version_and_the_entry_point():
     """The real entry point, in a process: --version on one line."""
-    out = subprocess.run([sys.executable, "-m", "bridge.cli", "--version"], cwd=REPO,
+    out = subprocess.run([sys.executable, "-m", "bridge.app.cli", "--version"], cwd=REPO,
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stderr == ""
     assert out.stdout.startswith("attitude-bridge ") and out.stdout.count("\n") == 1
@@ -165,14 +165,14 @@ def test_estimators_listing_shows_degrees(capsys):
 
 
 def parse(argv: list[str]):
-    from bridge.cli import build_parser
+    from bridge.app.cli import build_parser
 
     return build_parser().parse_args(argv)
 
 
 def test_e_is_short_for_estimator_on_every_command_that_takes_it():
     """The README writes `-e NAME:k=v`; every command with --estimator takes it."""
-    from bridge.cli import build_parser
+    from bridge.app.cli import build_parser
 
     commands = build_parser()._subparsers._group_actions[0].choices
     options = {name: next((a.option_strings for a in p._actions
@@ -216,7 +216,7 @@ def test_settings_file_takes_option_names_and_the_environment_overrides_it(tmp_p
 def test_every_run_option_is_a_setting_name():
     """Option names and settings cannot drift apart: each option of `run` is accepted
     as a TOML key and lands on a field."""
-    from bridge.cli import build_parser
+    from bridge.app.cli import build_parser
 
     run = build_parser()._subparsers._group_actions[0].choices["run"]
     for action in run._actions:
@@ -255,7 +255,7 @@ def test_readme_commands_are_valid(tmp_path, monkeypatch):
     settings that pass validation (in a folder with the files they name)."""
     import shlex
 
-    from bridge.cli import build_parser
+    from bridge.app.cli import build_parser
     from imu.calibration import SensorCalibration
 
     (tmp_path / "examples").mkdir()

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 import estimators
-from bridge.calibrate_cli import emulator_samples
+from bridge.app.calibrate_cli import emulator_samples
 from estimators.eskf import MULTIROTOR_DRAG_PER_S
 from estimators.metrics import rms_errors
 from hil import EmulatorConfig, simulate

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bridge.codec import MavCodec, SigningConfig, signing_key_from_text
-from bridge.fastframe import decode_single_imu_frame
-from bridge.mav import mavlink
+from bridge.wire.codec import MavCodec, SigningConfig, signing_key_from_text
+from bridge.wire.fastframe import decode_single_imu_frame
+from bridge.wire.mav import mavlink
 
 RNG = np.random.default_rng(7)
 

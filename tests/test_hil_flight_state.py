@@ -335,7 +335,7 @@ def test_handheld_flight_from_the_command_line(handheld_rec):
     samples as simulate(), and HEARTBEAT disarmed, armed, disarmed, armed, disarmed."""
     rx = Receiver.open()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "bridge.cli", "hil", "--target", f"udp:127.0.0.1:{rx.port}",
+        [sys.executable, "-m", "bridge.app.cli", "hil", "--target", f"udp:127.0.0.1:{rx.port}",
          "--profile", "handheld_flight", "--rate", str(RATE_HZ), "--duration", str(HANDHELD_S),
          "--seed", "3", "--autopilot", "ardupilot", "--fast"],
         env=dict(os.environ, PYTHONPATH=str(REPO)), stderr=subprocess.PIPE, text=True)

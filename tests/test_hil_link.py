@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from hil_support import Receiver, unwrap_seq
 
-from bridge.cli import main as cli_main
+from bridge.app.cli import main as cli_main
 from hil import Emulator, EmulatorConfig, FaultConfig, simulate
 
 REPO = Path(__file__).resolve().parents[1]
@@ -50,7 +50,7 @@ def test_realtime_rates_from_the_command_line(tmp_path):
     stats_path = tmp_path / "stats.json"
     env = dict(os.environ, PYTHONPATH=str(REPO))
     proc = subprocess.Popen(
-        [sys.executable, "-m", "bridge.cli", "hil", "--target", f"udp:127.0.0.1:{rx.port}",
+        [sys.executable, "-m", "bridge.app.cli", "hil", "--target", f"udp:127.0.0.1:{rx.port}",
          "--profile", "flight", "--rate", "1000", "--duration", "5", "--sysid", "7",
          "--stats-json", str(stats_path)],
         env=env, stderr=subprocess.PIPE, text=True)

@@ -129,7 +129,7 @@ def test_earth_field_direction():
 
 def test_default_field_is_the_world_magnetic_model_at_home():
     """The emulated compass sees the WMM field at its home position and date."""
-    from bridge.emulator import emulator_declination_deg
+    from bridge.app.emulator import emulator_declination_deg
     from imu import geomag
 
     env = Environment()

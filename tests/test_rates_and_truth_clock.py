@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bridge.clock import ArrivalClock
-from bridge.ingest import Ingest
-from bridge.mav import mavlink
-from bridge.negotiate import ARDUPILOT, PX4, StreamNegotiation, next_slower_rate
+from bridge.vehicle.clock import ArrivalClock
+from bridge.vehicle.ingest import Ingest
+from bridge.vehicle.negotiate import ARDUPILOT, PX4, StreamNegotiation, next_slower_rate
+from bridge.wire.mav import mavlink
 from imu.boards import board_profile
 from replay.dataset import Recording
 

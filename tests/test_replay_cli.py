@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bridge.cli import main
+from bridge.app.cli import main
 from replay import ReplayInputError, load
 from replay.readers import csv as csv_format
 from replay.synthetic import SyntheticConfig, generate
@@ -291,7 +291,7 @@ def test_ctrl_c_in_tune_keeps_the_partial_sweep(tmp_path):
     data = tmp_path / "s.csv"
     csv_format.write(data, rec.t, rec.gyr, rec.acc, rec.mag, rec.reference.q)
     out = tmp_path / "sweep.csv"
-    cmd = [sys.executable, "-m", "bridge.cli", "tune", str(data), "-e", "mahony",
+    cmd = [sys.executable, "-m", "bridge.app.cli", "tune", str(data), "-e", "mahony",
            "-p", "kp=0.05:5:400", "--set", "ki=0", "-j", "2", "--out", str(out)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             cwd=os.path.dirname(os.path.dirname(__file__)))

@@ -13,7 +13,7 @@ import pytest
 from hil_support import Receiver
 
 import replay
-from bridge.cli import main
+from bridge.app.cli import main
 from estimators import metrics
 from replay.align import measure_lag, reference_at
 

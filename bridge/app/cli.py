@@ -26,11 +26,11 @@ from typing import NoReturn
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "estimators.cli",
     "hil.cli",
-    "bridge.run_cli",
-    "bridge.calibrate_cli",
+    "bridge.app.run_cli",
+    "bridge.app.calibrate_cli",
     "replay.cli",
-    "bridge.warmup",
-    "bridge.health",
+    "bridge.app.warmup",
+    "bridge.app.health",
 )
 
 EXIT_USAGE = 2  # bad input: the user can fix it (argparse uses 2 too)

@@ -26,9 +26,8 @@ import numpy as np
 from estimators import metrics
 from estimators import quat as Q
 
-from .ring import TimeRing
-
-TRUTH, VEHICLE = "truth", "vehicle"
+from ..vehicle.references import TRUTH, VEHICLE, References
+from ..vehicle.ring import TimeRing
 
 
 @dataclass(frozen=True)
@@ -118,26 +117,6 @@ def compare_series(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
     err = metrics.rms_errors(e, r)
     return Comparison(err.total_deg, err.heading_deg, err.inclination_deg, lag,
                       err.samples, note)
-
-
-class References:
-    """Reference attitudes of one vehicle, as they arrive."""
-
-    def __init__(self, capacity: int = 20000) -> None:
-        self.series = {TRUTH: TimeRing(capacity, 4), VEHICLE: TimeRing(capacity, 4)}
-        self._vehicle_has_quaternion = False
-
-    def add_truth(self, t: float, q: np.ndarray) -> None:
-        self.series[TRUTH].push(t, q)
-
-    def add_vehicle_quaternion(self, t: float, q: np.ndarray) -> None:
-        self._vehicle_has_quaternion = True
-        self.series[VEHICLE].push(t, q)
-
-    def add_vehicle_euler(self, t: float, roll: float, pitch: float, yaw: float) -> None:
-        """ATTITUDE is used only when the vehicle sends no ATTITUDE_QUATERNION."""
-        if not self._vehicle_has_quaternion:
-            self.series[VEHICLE].push(t, Q.from_euler(roll, pitch, yaw))
 
 
 #: Shift grids [s]: the estimate lags truth (>= 0); the vehicle's stamps may be late or

@@ -39,29 +39,29 @@ from imu.boards import board_profile
 from imu.flight_state import state_name
 from imu.rotations import rotation_matrix
 
-from .admission import Admission
-from .aiding import VELOCITY_MESSAGE_IDS, VelocityAiding
-from .codec import SigningConfig, load_signing_key
-from .compare import compare_all, vehicle_against_truth
-from .config import BridgeConfig
-from .declination import Declination
-from .health import write_status_file
-from .ingest import (
+from ..estimate.compare import compare_all, vehicle_against_truth
+from ..estimate.pipeline import Estimate, Pipeline
+from ..publish.mqtt import MqttPublisher, MqttSettings, Outgoing
+from ..publish.output import AttitudeOutput, euler_zyx
+from ..publish.record import TlogRecorder
+from ..vehicle.aiding import VELOCITY_MESSAGE_IDS, VelocityAiding
+from ..vehicle.declination import Declination
+from ..vehicle.ingest import (
     DROP_CAUSES,
     FLAG_CAUSES,
     IMU_MESSAGE_IDS,
     Ingest,
     Limits,
 )
-from .links import Link, LinkOptions, UdpLink, open_link, parse_url
-from .mav import MAVLinkMessage, mavlink
-from .model import describe, model_of, type_name
-from .mqtt import MqttPublisher, MqttSettings, Outgoing
-from .negotiate import Request, StreamNegotiation, board_for, parse_forced
-from .output import AttitudeOutput, euler_zyx
-from .pipeline import Estimate, Pipeline
-from .record import TlogRecorder
-from .vehicle import CONFIGURED, HEARTBEAT, PROVISIONAL, Vehicle
+from ..vehicle.model import describe, model_of, type_name
+from ..vehicle.negotiate import Request, StreamNegotiation, board_for, parse_forced
+from ..vehicle.vehicle import CONFIGURED, HEARTBEAT, PROVISIONAL, Vehicle
+from ..wire.admission import Admission
+from ..wire.codec import SigningConfig, load_signing_key
+from ..wire.links import Link, LinkOptions, UdpLink, open_link, parse_url
+from ..wire.mav import MAVLinkMessage, mavlink
+from .config import BridgeConfig
+from .health import write_status_file
 from .warmup import Progress, warm_up_all
 
 log = logging.getLogger(__name__)

@@ -27,7 +27,7 @@ EXIT_HEALTHY, EXIT_UNHEALTHY = 0, 1
 
 def write_status_file(path: str | Path, status: dict[str, Any]) -> None:
     """Replace ``path`` with ``status`` as JSON in one step (rename is atomic)."""
-    from .mqtt import _encode
+    from ..publish.mqtt import _encode
 
     path = Path(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")

@@ -41,8 +41,8 @@ import numpy as np
 from imu.boards import BoardProfile
 from imu.calibration import SensorCalibration
 
+from ..wire.mav import MAVLinkMessage, mavlink
 from . import clock as C
-from .mav import MAVLinkMessage, mavlink
 
 MG = 9.80665e-3  # m/s^2 per milli-g
 MAG_NORM_TOLERANCE = 0.15  # relative deviation of |mag| that marks a disturbed reading

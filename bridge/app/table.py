@@ -7,7 +7,7 @@ import sys
 import time
 from typing import TYPE_CHECKING, Any, TextIO
 
-from .output import euler_zyx
+from ..publish.output import euler_zyx
 
 if TYPE_CHECKING:
     from .service import BridgeService

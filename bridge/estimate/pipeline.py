@@ -31,9 +31,9 @@ import numpy as np
 import estimators
 from estimators.spec import EstimatorSpec
 
-from .ingest import ImuSample, SourceKey
-from .model import UNKNOWN, model_defaults
-from .ring import TimeRing
+from ..vehicle.ingest import ImuSample, SourceKey
+from ..vehicle.model import UNKNOWN, model_defaults
+from ..vehicle.ring import TimeRing
 
 
 @dataclass

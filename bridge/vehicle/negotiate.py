@@ -51,8 +51,8 @@ from typing import Any
 
 import numpy as np
 
+from ..wire.mav import mavlink
 from .ingest import IMU_MESSAGE_NAMES
-from .mav import mavlink
 
 log = logging.getLogger(__name__)
 

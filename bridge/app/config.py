@@ -27,8 +27,8 @@ from imu.boards import PROFILES
 from imu.calibration import SensorCalibration
 from imu.rotations import rotation_matrix
 
-from .mav import BRIDGE_COMPONENT_ID, mavlink
-from .negotiate import parse_forced
+from ..vehicle.negotiate import parse_forced
+from ..wire.mav import BRIDGE_COMPONENT_ID, mavlink
 
 #: Personalities of the built-in emulator (hil.personality.AUTOPILOTS; not imported
 #: here: a bridge on a real vehicle need not load the emulator).
@@ -172,8 +172,8 @@ class BridgeConfig:
 
     def validate(self) -> None:
         """Raise ValueError naming the bad setting, before anything is started."""
-        from .codec import load_signing_key
-        from .links import parse_url
+        from ..wire.codec import load_signing_key
+        from ..wire.links import parse_url
 
         self._check_types()
         self._check_ranges()
@@ -204,7 +204,7 @@ class BridgeConfig:
         if not 1 <= self.component_id <= 255 or not 1 <= self.system_id <= 255:
             raise ValueError("component_id and system_id must be in 1..255")
         if self.mqtt:
-            from .mqtt import MqttSettings
+            from ..publish.mqtt import MqttSettings
 
             MqttSettings.from_url(self.mqtt)
         for option, path in (("--record", self.record), ("--status-file", self.status_file)):

@@ -32,13 +32,13 @@ from typing import Any
 
 from imu.flight_state import FlightStateTracker
 
+from ..wire.sequence import SequenceTracker
 from .aiding import VelocityAiding
 from .clock import ArrivalClock
-from .compare import References
 from .declination import Declination
 from .ingest import SourceKey
 from .negotiate import StreamNegotiation
-from .sequence import SequenceTracker
+from .references import References
 
 #: Per-vehicle sequence trackers (one per sending component) kept at most.
 MAX_COMPONENTS = 16

@@ -25,7 +25,7 @@ from typing import Any
 
 from imu import geomag
 
-from .mav import mavlink
+from ..wire.mav import mavlink
 
 log = logging.getLogger(__name__)
 

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from .mav import MAVLinkMessage, mavlink
+from ..wire.mav import MAVLinkMessage, mavlink
 
 ID_LOCAL_POSITION_NED = mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED
 ID_GLOBAL_POSITION_INT = mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT

@@ -15,11 +15,11 @@ import numpy as np
 
 from estimators import quat as Q
 
-from .ingest import SourceKey
-from .links import Link
-from .mav import mavlink
-from .pipeline import Estimate
-from .ring import TimeRing
+from ..estimate.pipeline import Estimate
+from ..vehicle.ingest import SourceKey
+from ..vehicle.ring import TimeRing
+from ..wire.links import Link
+from ..wire.mav import mavlink
 
 _NO_OFFSET = [1.0, 0.0, 0.0, 0.0]  # repr_offset_q: no display rotation
 

@@ -1,0 +1,4 @@
+"""Wire: bytes <-> MAVLink messages. The links (UDP, TCP, serial) and their peers, the
+codec (MAVLink 2, signing), fast framing and the in-kernel prefilter, the admission of
+senders, packet sequences. Imports nothing else of the bridge: every other wing builds
+on it. A new link type goes in ``links.py``."""

@@ -20,12 +20,12 @@ from bridge_support import (
     wait_until,
 )
 
-from bridge.vehicle import clock as C
 from bridge.app.config import BridgeConfig
 from bridge.estimate.compare import compare_series
 from bridge.estimate.pipeline import Estimate
 from bridge.publish.mqtt import MqttSettings
 from bridge.publish.output import AttitudeOutput
+from bridge.vehicle import clock as C
 from bridge.vehicle.ingest import Ingest, SourceKey
 from bridge.wire.admission import Admission
 from bridge.wire.codec import MavCodec, SigningConfig, load_signing_key, signing_key_from_text

@@ -49,9 +49,17 @@ def wait_landed_and_disarmed(link: Link, timeout: float = 60.0) -> None:
     log(f"  landed; disarmed {time.time() - t_landed:.1f} s later")
 
 
-def wait_climb(link: Link, alt: float, timeout: float = 30.0) -> None:
-    require(link.wait_for(lambda: link.pos is not None and link.pos[2] < -0.9 * alt, timeout),
-            f"did not climb to {alt} m")
+def ground_z(link: Link) -> float:
+    """LOCAL_POSITION_NED's z where the vehicle stands (it is relative to the EKF's
+    origin, which a barometer's drift puts off the ground by up to a metre)."""
+    require(link.wait_for(lambda: link.pos is not None, 5.0), "no LOCAL_POSITION_NED")
+    return link.pos[2]
+
+
+def wait_climb(link: Link, alt: float, z0: float, timeout: float = 30.0) -> None:
+    """Until the vehicle is ``alt`` (90 % of it) above ``z0``, where it stood."""
+    require(link.wait_for(lambda: link.pos[2] < z0 - 0.9 * alt, timeout),
+            f"did not climb to {alt} m (z {link.pos[2]:.2f} m, {z0:.2f} m on the ground)")
 
 
 def arm(link: Link, timeout: float = 60.0) -> None:
@@ -71,10 +79,11 @@ def px4_ready(link: Link, timeout: float = 60.0, settle_s: float = 5.0) -> None:
 
 
 def px4_takeoff(link: Link, alt: float) -> None:
+    z0 = ground_z(link)
     require(link.command(mav.MAV_CMD_NAV_TAKEOFF, NAN, 0, 0, NAN, NAN, NAN, NAN) == 0,
             "NAV_TAKEOFF refused")
     arm(link)
-    wait_climb(link, alt)
+    wait_climb(link, alt, z0)
     time.sleep(1.5)
 
 
@@ -107,6 +116,7 @@ def ap_ready(link: Link, timeout: float = 120.0, settle_s: float = 3.0) -> None:
 
 
 def ap_takeoff(link: Link, alt: float) -> None:
+    z0 = ground_z(link)
     ap_mode(link, AP_GUIDED)
     for _ in range(5):
         arm(link)
@@ -115,7 +125,7 @@ def ap_takeoff(link: Link, alt: float) -> None:
         time.sleep(1.0)
     else:
         raise FlightError("takeoff refused")
-    wait_climb(link, alt)
+    wait_climb(link, alt, z0)
     time.sleep(1.5)
 
 

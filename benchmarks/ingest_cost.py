@@ -1,4 +1,4 @@
-"""Per-sample cost of ``bridge.ingest.Ingest.handle`` (no sockets, no estimator).
+"""Per-sample cost of ``bridge.vehicle.ingest.Ingest.handle`` (no sockets, no estimator).
 
     PYTHONPATH=. python3 benchmarks/ingest_cost.py [--calibration calib.toml]
 

@@ -51,21 +51,27 @@ GCS_SYSID, GCS_COMPID = 255, 190
 
 
 # --------------------------------------------------------------------------- where and which ports
-def autopilots_dir() -> Path:
-    """SITL_AUTOPILOTS, else ``shared/autopilots`` beside this checkout or beside the
-    checkout it was cloned from (CI tests a clone)."""
-    if "SITL_AUTOPILOTS" in os.environ:
-        return Path(os.environ["SITL_AUTOPILOTS"])
-    beside = REPO.parent / "shared" / "autopilots"
+def shared_folder(name: str, env: str) -> Path:
+    """``$env``, else ``shared/<name>`` beside this checkout or beside the checkout it
+    was cloned from (CI tests a clone); the path beside this checkout when neither has
+    it (the caller says what is missing)."""
+    if env in os.environ:
+        return Path(os.environ[env])
+    beside = REPO.parent / "shared" / name
     if beside.is_dir():
         return beside
     with contextlib.suppress(OSError, subprocess.SubprocessError):
         url = subprocess.run(["git", "-C", str(REPO), "config", "--get", "remote.origin.url"],
                              capture_output=True, text=True, timeout=5).stdout.strip()
         origin = Path(url.removeprefix("file://"))
-        if url and origin.is_absolute() and (origin.parent / "shared" / "autopilots").is_dir():
-            return origin.parent / "shared" / "autopilots"
+        if url and origin.is_absolute() and (origin.parent / "shared" / name).is_dir():
+            return origin.parent / "shared" / name
     return beside
+
+
+def autopilots_dir() -> Path:
+    """The packed SITL runtimes: SITL_AUTOPILOTS, else ``shared/autopilots``."""
+    return shared_folder("autopilots", "SITL_AUTOPILOTS")
 
 
 def free_udp_port() -> int:
@@ -298,7 +304,7 @@ class Link:
         self.conn.close()
 
     # ---- send side
-    def _send(self, msg, log: bool = False) -> None:
+    def send(self, msg, log: bool = False) -> None:
         with self.send_lock:
             self.conn.mav.send(msg)
         if log:
@@ -307,7 +313,7 @@ class Link:
     def _heartbeat(self) -> None:
         while True:
             with contextlib.suppress(OSError):  # udpin: no peer to send to yet
-                self._send(self.conn.mav.heartbeat_encode(
+                self.send(self.conn.mav.heartbeat_encode(
                     mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE))
             if self.stop_flag.wait(1.0):
                 return
@@ -327,7 +333,7 @@ class Link:
         for attempt in range(retries):
             with self.cond:
                 self.acks.pop(cmd, None)
-            self._send(self.conn.mav.command_long_encode(self.sysid, self.compid, cmd,
+            self.send(self.conn.mav.command_long_encode(self.sysid, self.compid, cmd,
                                                          attempt, *p), log=True)
             deadline = time.time() + timeout
             while time.time() < deadline:
@@ -345,7 +351,7 @@ class Link:
 
     def velocity(self, vn: float, ve: float, vd: float, yaw_rate: float) -> None:
         """One SET_POSITION_TARGET_LOCAL_NED: NED velocity (m/s) and yaw rate (rad/s)."""
-        self._send(self.conn.mav.set_position_target_local_ned_encode(
+        self.send(self.conn.mav.set_position_target_local_ned_encode(
             int(time.monotonic() * 1e3) & 0xFFFFFFFF, self.sysid, self.compid,
             mav.MAV_FRAME_LOCAL_NED, VELOCITY_YAWRATE_MASK, 0, 0, 0, vn, ve, vd,
             0, 0, 0, 0, yaw_rate))

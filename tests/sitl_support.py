@@ -205,7 +205,7 @@ def read_param(link: Link, name: str, tries: int = 5) -> float | None:
 
     link.on_message["PARAM_VALUE"] = on_param
     for _ in range(tries):
-        link._send(link.conn.mav.param_request_read_encode(link.sysid, link.compid,
+        link.send(link.conn.mav.param_request_read_encode(link.sysid, link.compid,
                                                            name.encode(), -1))
         if link.wait_for(lambda: name in values, 1.0):
             return values[name]

@@ -49,7 +49,7 @@ def emulator_declination_deg() -> float:
 
 
 def builtin_emulator(cfg: BridgeConfig):
-    """An emulator starter for :class:`bridge.service.BridgeService`."""
+    """An emulator starter for :class:`bridge.app.service.BridgeService`."""
     from hil import Emulator
 
     # Streaming until the bridge stops, unless a duration bounds the demo.

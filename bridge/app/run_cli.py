@@ -2,8 +2,8 @@
 
 Settings come from, in increasing precedence: defaults, the ``--config`` TOML file (or
 ``ATTITUDE_BRIDGE_CONFIG``), ``ATTITUDE_BRIDGE_*`` environment variables, the command
-line (see :mod:`bridge.config`). Errors are raised as ``ValueError`` / ``OSError`` and
-reported as one line by the CLI's error boundary (:mod:`bridge.cli`).
+line (see :mod:`bridge.app.config`). Errors are raised as ``ValueError`` / ``OSError`` and
+reported as one line by the CLI's error boundary (:mod:`bridge.app.cli`).
 """
 
 from __future__ import annotations

@@ -7,8 +7,8 @@ ever gets a non-blocking enqueue; comparison, status and the live table run in a
 task off the sample path.
 
 Hostile input is refused as early as it can be and counted where it was refused: the
-UDP gate (:mod:`bridge.admission`) before parsing, the codec (CRC, signing), the
-vehicle table (:mod:`bridge.vehicle`: unserved system ids, non-primary IMUs, references
+UDP gate (:mod:`bridge.wire.admission`) before parsing, the codec (CRC, signing), the
+vehicle table (:mod:`bridge.vehicle.vehicle`: unserved system ids, non-primary IMUs, references
 from other senders), ingest (clock, plausibility). Per-vehicle state exists only for
 served vehicles and is dropped after ``evict_after_s`` of silence.
 
@@ -189,7 +189,7 @@ class BridgeService:
         """Run until ``stop`` is set or ``cfg.duration`` elapses; return the final status.
 
         The links open first (a port in use or a host that does not resolve fails at
-        once, as :class:`bridge.links.LinkError`), then the estimators are compiled
+        once, as :class:`bridge.wire.links.LinkError`), then the estimators are compiled
         (``on_progress`` hears about each), then the service starts.
         """
         stop = stop or asyncio.Event()

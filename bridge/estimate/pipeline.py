@@ -6,7 +6,7 @@ published on MQTT.
 
 What the estimators are told about the vehicle comes per vehicle (:class:`VehicleSetup`):
 its magnetic declination (the output's true north) and its model (a multirotor runs
-``eskf`` with the rotor-drag model, :mod:`bridge.model`). Either may only become known
+``eskf`` with the rotor-drag model, :mod:`bridge.vehicle.model`). Either may only become known
 after the first samples (a parameter answered, the first position, the heartbeat):
 
 * a new declination turns every estimator's output in place

@@ -11,7 +11,7 @@ ingesting at all is the caller's choice (one primary IMU per vehicle).
 What happens to bad input, and why:
 
 * timestamp problems (duplicate, late, jump, backwards): the sample is dropped and
-  counted (see :mod:`bridge.clock`); the estimator never sees a wrong ``dt``. A new
+  counted (see :mod:`bridge.vehicle.clock`); the estimator never sees a wrong ``dt``. A new
   timeline is adopted only on sustained evidence; a reboot, or an outage longer than
   ``reinit_gap_s``, marks the next sample ``restart`` so that the estimate starts over
   instead of continuing from a stale attitude;

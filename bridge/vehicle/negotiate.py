@@ -29,7 +29,7 @@ in uneven 2.5 ms / 5 ms steps: the median step would say 400 or 200 Hz. A rate b
 ``RATE_SHORTFALL`` of the request is logged at WARNING once it has held for
 ``RATE_JUDGED_AFTER_S`` of samples.
 
-For PX4 and ArduPilot the velocity streams for aiding (:mod:`bridge.aiding`) are asked
+For PX4 and ArduPilot the velocity streams for aiding (:mod:`bridge.vehicle.aiding`) are asked
 for too, after the IMU: LOCAL_POSITION_NED at 50 Hz and GPS_RAW_INT at 10 Hz; their
 refusal is only noted (other sources may still come). Every vehicle is then asked for
 EXTENDED_SYS_STATE at ``FLIGHT_STATE_HZ``: its landed state decides when the flight-only
@@ -220,8 +220,7 @@ class StreamNegotiation:
         if self.message is None or self.state == REFUSED:
             return
         if self.outstanding is None or not self.outstanding.imu:
-            self.queue.appendleft(Request(self.message, self.imu_rate_hz or self.rate_hz,
-                                          imu=True))
+            self.queue.appendleft(Request(self.message, self.asked_hz, imu=True))
 
     # --- the command exchange --------------------------------------------------------
     def next_send(self, now: float) -> Request | None:

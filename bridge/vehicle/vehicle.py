@@ -21,7 +21,7 @@ injected by another sender must not decide what the bridge reports as its error.
 
 The object is also the home of the vehicle's other inputs: what its heartbeat says it
 is (autopilot, MAV_TYPE: the vehicle model), its velocity for aiding
-(:mod:`bridge.aiding`).
+(:mod:`bridge.vehicle.aiding`).
 """
 
 from __future__ import annotations

@@ -27,7 +27,7 @@ send anything within its budget, so that the service can see who is there.
 Under a flood (more than ``flood_rate`` refusals per second) even the peek is too
 expensive — the socket buffer overflows and the kernel drops the vehicle's packets with
 the flood's — so the link attaches the same rule as a kernel socket filter
-(:mod:`bridge.kernelfilter`); it passes a 1/SAMPLE sample of what it refuses, counted
+(:mod:`bridge.wire.kernelfilter`); it passes a 1/SAMPLE sample of what it refuses, counted
 here as ``kernel_refused_est`` (SAMPLE each). The filter comes off after ``FILTER_HOLD_S``
 once the sampled refusals fall below the flood rate.
 """

@@ -15,7 +15,7 @@ A UDP ``udpin`` link answers only peers it has heard speak valid (and, with sign
 verified) MAVLink: one byte from a spoofed address earns nothing. The peer table is
 bounded (``max_peers``, silent peers expire after ``peer_timeout_s``); refusals are
 counted. An optional ``gate(data)`` sees each datagram before it is parsed, so that a
-flood can be refused for the price of a header peek (see :mod:`bridge.admission`).
+flood can be refused for the price of a header peek (see :mod:`bridge.wire.admission`).
 
 URLs follow pymavlink: ``udpin:HOST:PORT`` (listen; reply to whoever sent to us),
 ``udpout:HOST:PORT`` (send to a fixed peer; ``udp:`` is an alias of ``udpin:``),

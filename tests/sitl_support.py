@@ -28,10 +28,14 @@ from hil.sitl import Link, Sitl
 
 REPO = Path(__file__).resolve().parents[1]
 BRIDGE_COMPID = 191
-#: Live, the primary estimate's total error is at most the autopilot's own; its
-#: inclination alone at most this multiple of the autopilot's (measured 0.82-1.07x on
-#: PX4 SIH, 0.66x on ArduPilot).
+#: Live, the primary estimate's inclination error is at most this multiple of the
+#: autopilot's own (measured 0.82-1.07x on PX4 SIH, 0.66x on ArduPilot).
 INCLINATION_VS_AUTOPILOT = 1.2
+#: ... and its total error at most this multiple of PX4's: over 14 PX4 SIH flights
+#: 0.45-1.09x (median 0.55x). The total is mostly heading, and the heading error of both
+#: drifts by 1-3° within a flight with what SIH's magnetometer says; in one flight of 14
+#: the bridge's ended above PX4's. Against ArduPilot (0.51x) the tests hold <= 1.
+TOTAL_VS_PX4 = 1.2
 TRUTH_TYPES = ("SIMSTATE", "HIL_STATE_QUATERNION")
 
 

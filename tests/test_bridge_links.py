@@ -189,7 +189,7 @@ async def test_refused_tcp_port_is_retried_and_told_once(caplog):
         autopilot.bind(("127.0.0.1", 0))  # bound, not listening: connections are refused
         port = autopilot.getsockname()[1]
         link = TcpLink(parse_url(f"tcp:127.0.0.1:{port}"))
-        with caplog.at_level(logging.WARNING, logger="bridge.wire.links"):
+        with caplog.at_level(logging.WARNING, logger="bridge.wire"):
             await link.start()
             try:
                 retried = await wait_until(lambda: link.stats.reconnects >= 3)

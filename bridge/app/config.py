@@ -13,7 +13,6 @@ not silently fall back to a default.
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import tomllib
 from collections.abc import Mapping
@@ -29,6 +28,7 @@ from imu.rotations import rotation_matrix
 
 from ..vehicle.negotiate import parse_forced
 from ..wire.mav import BRIDGE_COMPONENT_ID, mavlink
+from .config_checks import check_output_file, check_ranges, check_types, parse_source
 
 #: Personalities of the built-in emulator (hil.personality.AUTOPILOTS; not imported
 #: here: a bridge on a real vehicle need not load the emulator).
@@ -175,8 +175,8 @@ class BridgeConfig:
         from ..wire.codec import load_signing_key
         from ..wire.links import parse_url
 
-        self._check_types()
-        self._check_ranges()
+        check_types(self)
+        check_ranges(self)
         if self.signing_key:
             try:
                 load_signing_key(self.signing_key)
@@ -210,60 +210,6 @@ class BridgeConfig:
         for option, path in (("--record", self.record), ("--status-file", self.status_file)):
             if path is not None:
                 check_output_file(path, option)
-
-    def _check_types(self) -> None:
-        """Every setting of the type it is declared with (a TOML file can say anything)."""
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            kind = str(f.type)
-            if value is None and "None" in kind:
-                continue
-            if kind.startswith("float"):
-                ok = isinstance(value, int | float) and not isinstance(value, bool)
-            elif kind.startswith("int"):
-                ok = isinstance(value, int) and not isinstance(value, bool)
-            elif kind.startswith("bool"):
-                ok = isinstance(value, bool)
-            elif kind.startswith("str"):
-                ok = isinstance(value, str)
-            elif kind == "list[int]":
-                ok = isinstance(value, list) and all(
-                    isinstance(v, int) and not isinstance(v, bool) for v in value)
-            elif kind == "list[str]":
-                ok = isinstance(value, list) and all(isinstance(v, str) for v in value)
-            else:
-                continue
-            if not ok:
-                raise ValueError(f"setting {f.name!r} must be {kind}, got {value!r}")
-
-    def _check_ranges(self) -> None:
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if isinstance(value, float) and not math.isfinite(value):
-                raise ValueError(f"setting {f.name!r} must be a finite number, got {value!r}")
-        positive = ("imu_rate", "window_s", "status_period_s", "jump_s", "peer_timeout_s",
-                    "max_source_rate", "source_timeout_s", "evict_after_s", "clock_resync_s",
-                    "reinit_gap_s", "idle_timeout_s", "gyro_range_dps", "accel_range_g",
-                    "mag_range_gauss", "aid_max_age_s")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ValueError(f"setting {name!r} must be positive, got {getattr(self, name)!r}")
-        for name in ("reorder_s", "reinit_settle_s", "mqtt_rate"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"setting {name!r} must not be negative")
-        if self.duration is not None and not self.duration > 0:
-            raise ValueError(f"duration must be positive, got {self.duration!r}")
-        if self.declination_deg is not None and abs(self.declination_deg) > 180.0:
-            raise ValueError(f"declination must be within ±180°, got {self.declination_deg!r}")
-        if not 1 <= self.max_peers <= 100_000:
-            raise ValueError(f"max_peers must be in 1..100000, got {self.max_peers}")
-        for sysid in self.vehicles:
-            if not 1 <= sysid <= 255:
-                raise ValueError(f"vehicle system id must be in 1..255, got {sysid}")
-        if self.imu_id is not None and not 0 <= self.imu_id <= 255:
-            raise ValueError(f"imu_id must be in 0..255, got {self.imu_id}")
-        if self.truth_source is not None:
-            parse_source(self.truth_source)
 
     @property
     def truth(self) -> tuple[int, int] | None:
@@ -374,19 +320,6 @@ class BridgeConfig:
         return dataclasses.replace(self, **changes)
 
 
-def check_output_file(path: str | Path, option: str) -> None:
-    """ValueError unless ``path`` can be written: a file name in an existing, writable
-    folder (checked before the service starts, not when the first sample comes)."""
-    p = Path(path)
-    folder = p.parent
-    if p.is_dir():
-        raise ValueError(f"{option} {p}: is a folder, expected a file name")
-    if not folder.is_dir():
-        raise ValueError(f"{option} {p}: folder {folder} does not exist")
-    if not os.access(folder, os.W_OK):
-        raise ValueError(f"{option} {p}: folder {folder} is not writable")
-
-
 _TRUE = ("1", "true", "yes", "on")
 _FALSE = ("0", "false", "no", "off", "")
 
@@ -414,12 +347,3 @@ def _from_text(kind: str, text: str) -> Any:
     except ValueError:
         raise ValueError(f"expected a number, got {text!r}") from None
     return value
-
-
-def parse_source(text: str) -> tuple[int, int]:
-    """``"SYSID:COMPID"`` -> (sysid, compid); ValueError saying the form otherwise."""
-    sysid, sep, compid = str(text).partition(":")
-    if not (sep and sysid.strip().isdigit() and compid.strip().isdigit()
-            and 1 <= int(sysid) <= 255 and 0 <= int(compid) <= 255):
-        raise ValueError(f"bad source {text!r}; use SYSID:COMPID, e.g. 1:1")
-    return int(sysid), int(compid)

@@ -28,12 +28,10 @@ What happens to bad input, and why:
 * magnetometer strength far from its running average (a magnet or motor current
   nearby): passed as ``None`` and counted as ``mag_disturbed``.
 """
-
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -41,30 +39,29 @@ import numpy as np
 from imu.boards import BoardProfile
 from imu.calibration import SensorCalibration
 
-from ..wire.mav import MAVLinkMessage, mavlink
+from ..wire.mav import MAVLinkMessage
 from . import clock as C
+from .imu_sample import (
+    DROP_CAUSES,
+    FLAG_CAUSES,
+    ID_HIGHRES_IMU,
+    ID_RAW_IMU,
+    ID_SCALED_IMU,
+    ID_SCALED_IMU2,
+    ID_SCALED_IMU3,
+    IMU_MESSAGE_IDS,
+    IMU_MESSAGE_NAMES,
+    MG,
+    ImuSample,
+    Limits,
+    SourceKey,
+    SourceState,
+)
+from .sensor_checks import guard_mag, stuck_flags
 
-MG = 9.80665e-3  # m/s^2 per milli-g
-MAG_NORM_TOLERANCE = 0.15  # relative deviation of |mag| that marks a disturbed reading
-MAG_NORM_GAIN = 0.001  # per-sample weight of the running |mag| average
-MAG_REANCHOR_S = 3.0
-#: Identical RAW_IMU readings are a stuck sensor once they have lasted this long [µs]:
-#: an MPU6050 at 8 kHz repeats itself for a few samples (its accelerometer register
-#: changes at 1 kHz, its gyro often by less than a count), never for milliseconds.
-STUCK_MIN_US = 5000
-#: Readings are implausible this far beyond the sensor's full scale (scaling, calibration).
-RANGE_MARGIN = 1.05
+__all__ = ["DROP_CAUSES", "FLAG_CAUSES", "IMU_MESSAGE_IDS", "IMU_MESSAGE_NAMES", "ImuSample",
+           "Ingest", "Limits", "SourceKey", "SourceState"]
 
-ID_RAW_IMU = mavlink.MAVLINK_MSG_ID_RAW_IMU
-ID_SCALED_IMU = mavlink.MAVLINK_MSG_ID_SCALED_IMU
-ID_SCALED_IMU2 = mavlink.MAVLINK_MSG_ID_SCALED_IMU2
-ID_SCALED_IMU3 = mavlink.MAVLINK_MSG_ID_SCALED_IMU3
-ID_HIGHRES_IMU = mavlink.MAVLINK_MSG_ID_HIGHRES_IMU
-IMU_MESSAGE_IDS = frozenset((ID_RAW_IMU, ID_SCALED_IMU, ID_SCALED_IMU2, ID_SCALED_IMU3,
-                             ID_HIGHRES_IMU))
-IMU_MESSAGE_NAMES = {"RAW_IMU": ID_RAW_IMU, "SCALED_IMU": ID_SCALED_IMU,
-                     "SCALED_IMU2": ID_SCALED_IMU2, "SCALED_IMU3": ID_SCALED_IMU3,
-                     "HIGHRES_IMU": ID_HIGHRES_IMU}
 _SCALED_IMU_INDEX = {ID_SCALED_IMU: 0, ID_SCALED_IMU2: 1, ID_SCALED_IMU3: 2}
 _ONE = (1.0,)  # appended to a message's numbers for the affine (calibrated) maps
 
@@ -74,19 +71,6 @@ def _affine(matrix: np.ndarray, offset: np.ndarray) -> np.ndarray:
     return np.column_stack([matrix, offset])
 
 
-class SourceKey(NamedTuple):
-    """One IMU stream: the sending system and component, the message, and its IMU index.
-
-    The message id is part of the key: RAW_IMU (µs), SCALED_IMU (ms) and HIGHRES_IMU
-    (µs) of one vehicle are different streams with different clocks.
-    """
-
-    sysid: int
-    compid: int
-    msg: int
-    imu: int
-
-
 class _RawMap(NamedTuple):
     """One board profile's RAW_IMU map (see Ingest._raw_map)."""
 
@@ -94,77 +78,6 @@ class _RawMap(NamedTuple):
     matrix: np.ndarray  # 9x10
     gyr_max: float  # counts
     acc_max: float
-
-
-@dataclass(frozen=True)
-class Limits:
-    """Full scale of the sensors: a reading beyond it is not a measurement."""
-
-    gyro_dps: float = 2000.0
-    accel_g: float = 16.0
-    mag_gauss: float = 8.0
-
-    def validate(self) -> None:
-        for name, v in (("gyro_range_dps", self.gyro_dps), ("accel_range_g", self.accel_g),
-                        ("mag_range_gauss", self.mag_gauss)):
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a positive number, got {v!r}")
-
-    @property
-    def gyro_rad_s(self) -> float:
-        return math.radians(self.gyro_dps) * RANGE_MARGIN
-
-    @property
-    def accel_m_s2(self) -> float:
-        return self.accel_g * 9.80665 * RANGE_MARGIN
-
-    @property
-    def mag(self) -> float:
-        return self.mag_gauss * RANGE_MARGIN
-
-
-@dataclass(slots=True)
-class ImuSample:
-    """One accepted IMU sample in SI units, body FRD."""
-
-    key: SourceKey
-    t: float  # board time [s], unwrapped
-    time_boot_ms: int  # board time for outgoing messages (uint32 ms)
-    dt: float | None  # [s] since the previous accepted sample; None: use the nominal rate
-    gyr: np.ndarray  # rad/s
-    acc: np.ndarray  # m/s^2 specific force (NaN when unusable)
-    mag: np.ndarray | None  # any unit (direction only); None when absent or unusable
-    arrival: float  # time.perf_counter() when the packet was read (for latency)
-    restart: str | None = None  # "reboot" / "gap": start the estimate over at this sample
-
-
-#: Per-source counters, by cause. Drops remove the sample; the others only flag it.
-DROP_CAUSES = (C.DUPLICATE, C.REORDERED, C.JUMP, C.BACKWARDS, "nonfinite", "implausible")
-FLAG_CAUSES = ("resync", "reboot", "gap", "reinit", "wrap", "gyro_saturated",
-               "acc_saturated", "acc_invalid", "mag_invalid", "mag_disturbed", "stuck")
-
-
-@dataclass
-class SourceState:
-    """Clock and counters of one source."""
-
-    clock: C.SampleClock
-    accepted: int = 0
-    counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(
-        DROP_CAUSES + FLAG_CAUSES, 0))
-    first_arrival: float = 0.0
-    last_arrival: float = 0.0
-    last_raw: tuple = ()  # previous RAW_IMU gyro+accel integers, to spot a stuck sensor
-    repeats: int = 0  # how many readings in a row repeated it
-    repeat_from_us: int = 0  # time_usec of the reading being repeated
-    stuck: bool = False  # the repeats have lasted STUCK_MIN_US: counted as stuck
-    last_good_gyr: np.ndarray | None = None  # last unclipped gyro, held while clipped
-    mag_norm: float = 0.0  # slow average of |mag| over accepted readings (0: none yet)
-    mag_rejected_since: float = 0.0  # board time of the last accepted magnetometer reading
-
-    @property
-    def dropped(self) -> int:
-        return sum(self.counts[c] for c in DROP_CAUSES)
 
 
 class _Pending(NamedTuple):
@@ -320,21 +233,8 @@ class Ingest:
             flags += ("acc_saturated",)
         if mag_overflow:
             flags += ("mag_invalid",)
-        # Noise makes a 6-axis raw reading repeated for milliseconds practically
-        # impossible: the sensor (or its driver) re-sends old data. Once a run of repeats
-        # lasts STUCK_MIN_US, all of its repeats count (those before it, at once).
-        # (Rounded units, ArduPilot's, repeat honestly at rest: no such test.)
-        if p.sensor_counts and raw == src.last_raw:
-            src.repeats += 1
-            if src.stuck:
-                flags += ("stuck",)
-            elif m.time_usec - src.repeat_from_us >= STUCK_MIN_US and src.repeats >= 2:
-                src.stuck = True
-                src.counts["stuck"] += src.repeats - 1
-                flags += ("stuck",)
-        else:
-            src.last_raw, src.repeats, src.stuck = raw, 0, False
-            src.repeat_from_us = m.time_usec
+        if p.sensor_counts:
+            flags += stuck_flags(src, raw, m.time_usec)
         return self._stamp(src, key, m.time_usec, 1e-6,
                            _Pending(si[0:3], acc, mag, arrival, flags), raw)
 
@@ -432,26 +332,7 @@ class Ingest:
                 src.mag_rejected_since = t  # time moved: re-anchoring counts from here
             mag = p.mag
             if mag is not None:
-                mag = self._guard_mag(src, mag, t)
+                mag = guard_mag(src, mag, t)
             out.append(ImuSample(key, t, round(t * 1e3) % C.WRAP_32, acc.dt, gyr, p.acc, mag,
                                  p.arrival, restart if i == 0 else None))
         return out
-
-    def _guard_mag(self, src: SourceState, mag: np.ndarray, t: float) -> np.ndarray | None:
-        """None for a reading whose strength is far from the usual (a magnet nearby).
-
-        The Earth's field strength is constant where a vehicle flies, so a reading
-        MAG_NORM_TOLERANCE off the running average is disturbed: its direction would
-        pull the heading. After MAG_REANCHOR_S of continuous rejection the new strength
-        is taken as the reference (e.g. a calibration change).
-        """
-        n = math.sqrt(float(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2]))
-        ref = src.mag_norm
-        if ref > 0.0 and abs(n - ref) > MAG_NORM_TOLERANCE * ref:
-            if t - src.mag_rejected_since < MAG_REANCHOR_S:
-                src.counts["mag_disturbed"] += 1
-                return None
-            ref = 0.0
-        src.mag_rejected_since = t
-        src.mag_norm = n if ref == 0.0 else ref + MAG_NORM_GAIN * (n - ref)
-        return mag

@@ -1,0 +1,90 @@
+"""Checks of a whole BridgeConfig before anything starts: types (a TOML file can say
+anything), ranges, and output files that can be written. Each raises ValueError naming
+the setting, which the CLI prints as one line."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+
+def check_types(cfg: Any) -> None:
+    """Every setting of the type it is declared with (a TOML file can say anything)."""
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        kind = str(f.type)
+        if value is None and "None" in kind:
+            continue
+        if kind.startswith("float"):
+            ok = isinstance(value, int | float) and not isinstance(value, bool)
+        elif kind.startswith("int"):
+            ok = isinstance(value, int) and not isinstance(value, bool)
+        elif kind.startswith("bool"):
+            ok = isinstance(value, bool)
+        elif kind.startswith("str"):
+            ok = isinstance(value, str)
+        elif kind == "list[int]":
+            ok = isinstance(value, list) and all(
+                isinstance(v, int) and not isinstance(v, bool) for v in value)
+        elif kind == "list[str]":
+            ok = isinstance(value, list) and all(isinstance(v, str) for v in value)
+        else:
+            continue
+        if not ok:
+            raise ValueError(f"setting {f.name!r} must be {kind}, got {value!r}")
+
+
+def check_ranges(cfg: Any) -> None:
+    """Numbers finite, positive where a zero makes no sense, ids in range."""
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(f"setting {f.name!r} must be a finite number, got {value!r}")
+    positive = ("imu_rate", "window_s", "status_period_s", "jump_s", "peer_timeout_s",
+                "max_source_rate", "source_timeout_s", "evict_after_s", "clock_resync_s",
+                "reinit_gap_s", "idle_timeout_s", "gyro_range_dps", "accel_range_g",
+                "mag_range_gauss", "aid_max_age_s")
+    for name in positive:
+        if not getattr(cfg, name) > 0:
+            raise ValueError(f"setting {name!r} must be positive, got {getattr(cfg, name)!r}")
+    for name in ("reorder_s", "reinit_settle_s", "mqtt_rate"):
+        if getattr(cfg, name) < 0:
+            raise ValueError(f"setting {name!r} must not be negative")
+    if cfg.duration is not None and not cfg.duration > 0:
+        raise ValueError(f"duration must be positive, got {cfg.duration!r}")
+    if cfg.declination_deg is not None and abs(cfg.declination_deg) > 180.0:
+        raise ValueError(f"declination must be within ±180°, got {cfg.declination_deg!r}")
+    if not 1 <= cfg.max_peers <= 100_000:
+        raise ValueError(f"max_peers must be in 1..100000, got {cfg.max_peers}")
+    for sysid in cfg.vehicles:
+        if not 1 <= sysid <= 255:
+            raise ValueError(f"vehicle system id must be in 1..255, got {sysid}")
+    if cfg.imu_id is not None and not 0 <= cfg.imu_id <= 255:
+        raise ValueError(f"imu_id must be in 0..255, got {cfg.imu_id}")
+    if cfg.truth_source is not None:
+        parse_source(cfg.truth_source)
+
+
+def check_output_file(path: str | Path, option: str) -> None:
+    """ValueError unless ``path`` can be written: a file name in an existing, writable
+    folder (checked before the service starts, not when the first sample comes)."""
+    p = Path(path)
+    folder = p.parent
+    if p.is_dir():
+        raise ValueError(f"{option} {p}: is a folder, expected a file name")
+    if not folder.is_dir():
+        raise ValueError(f"{option} {p}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise ValueError(f"{option} {p}: folder {folder} is not writable")
+
+
+def parse_source(text: str) -> tuple[int, int]:
+    """``"SYSID:COMPID"`` -> (sysid, compid); ValueError saying the form otherwise."""
+    sysid, sep, compid = str(text).partition(":")
+    if not (sep and sysid.strip().isdigit() and compid.strip().isdigit()
+            and 1 <= int(sysid) <= 255 and 0 <= int(compid) <= 255):
+        raise ValueError(f"bad source {text!r}; use SYSID:COMPID, e.g. 1:1")
+    return int(sysid), int(compid)

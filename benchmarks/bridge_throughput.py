@@ -49,14 +49,15 @@ BRIDGE_CPU = 0
 _RNG = np.random.default_rng(0)
 
 
-def encoded_raw_imu(n: int, rate_hz: float, sysid: int = 1) -> list[bytes]:
+def encoded_raw_imu(n: int, rate_hz: float, sysid: int = 1,
+                    start_us: int = 1_000_000) -> list[bytes]:
     mav = mavlink.MAVLink(None, sysid, 1)
     step = round(1e6 / rate_hz)
     noise = _RNG.integers(-20, 21, size=(n, 6))
     out = []
     for i in range(n):
         a, g = noise[i, :3], noise[i, 3:] // 4
-        msg = mavlink.MAVLink_raw_imu_message(1_000_000 + i * step, int(a[0]), int(a[1]),
+        msg = mavlink.MAVLink_raw_imu_message(start_us + i * step, int(a[0]), int(a[1]),
                                               4096 + int(a[2]), int(g[0]), int(g[1]),
                                               int(g[2]), 300, 10, -500, 0, 2500)
         out.append(msg.pack(mav))
@@ -83,13 +84,14 @@ def floor_cost(packets: list[bytes]) -> float:
 
 # --- sender process ------------------------------------------------------------------
 
-def _sender(port: int, rate_hz: float, n: int, result: mp.Queue, pace: bool) -> None:
+def _sender(port: int, rate_hz: float, n: int, result: mp.Queue, pace: bool,
+            start_us: int = 1_000_000) -> None:
     """Send n RAW_IMU (paced at rate_hz or as fast as the socket takes them); time the
     ATTITUDE_QUATERNION replies on this process's clock."""
     others = set(range(os.cpu_count() or 1)) - {BRIDGE_CPU}
     with contextlib.suppress(AttributeError, OSError, ValueError):
         os.sched_setaffinity(0, others or {BRIDGE_CPU})  # not on the bridge's core
-    packets = encoded_raw_imu(n, rate_hz)
+    packets = encoded_raw_imu(n, rate_hz, start_us=start_us)
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 * 1024 * 1024)
     sock.bind(("127.0.0.1", 0))

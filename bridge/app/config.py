@@ -155,6 +155,7 @@ class BridgeConfig:
     table: bool = False  # live table on stdout
     record: str | None = None  # .tlog of the connection's traffic, in and out
     status_file: str | None = None  # status JSON rewritten every status period (health)
+    web: str | None = None  # "[HOST:]PORT" of the live web view (bridge.publish.web)
     # Built-in emulator (no --connect): profile, seed, IMU message, faster than real time.
     emulator_profile: str = "flight"
     emulator_seed: int = 1
@@ -207,6 +208,10 @@ class BridgeConfig:
             from ..publish.mqtt import MqttSettings
 
             MqttSettings.from_url(self.mqtt)
+        if self.web is not None:
+            from ..publish.web import parse_web
+
+            parse_web(self.web)
         for option, path in (("--record", self.record), ("--status-file", self.status_file)):
             if path is not None:
                 check_output_file(path, option)

@@ -63,7 +63,8 @@ class MessageRouter:
         self.ingest: Ingest = samples.ingest
 
     def on_message(self, msg: MAVLinkMessage, link: Link) -> None:
-        arrival = time.perf_counter()
+        # when the datagram reached this machine (a busy event loop's delay included)
+        arrival = time.perf_counter() - link.waited_s
         header = msg.get_header()
         sysid, compid = header.srcSystem, header.srcComponent
         if compid == self.cfg.component_id:

@@ -123,6 +123,10 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--status-file", metavar="PATH",
                    help="rewrite the status (JSON) here every second, for `attitude-bridge "
                         "health` and other local monitors")
+    p.add_argument("--web", metavar="[HOST:]PORT",
+                   help="serve a live view of every vehicle and estimator to browsers at "
+                        "http://HOST:PORT/ (read-only; HOST defaults to 127.0.0.1: give "
+                        "0.0.0.0 to let other machines look)")
     p.add_argument("--profile", dest="emulator_profile", metavar="NAME",
                    help="built-in emulator's motion profile (no --connect), default flight")
     p.add_argument("--seed", dest="emulator_seed", type=int, help="built-in emulator seed")
@@ -184,7 +188,7 @@ def config_from_args(args: argparse.Namespace, demo: bool,
         "truth_source", "max_peers", "peer_timeout_s", "max_source_rate", "source_timeout_s",
         "evict_after_s", "clock_resync_s", "reinit_gap_s", "reinit_settle_s", "idle_timeout_s",
         "gyro_range_dps", "accel_range_g", "mag_range_gauss", "emulator_autopilot",
-        "emulator_gps", "aiding", "aid_max_age_s", "record", "status_file")}
+        "emulator_gps", "aiding", "aid_max_age_s", "record", "status_file", "web")}
     base = BridgeConfig(**given)
     if demo:
         overrides["connect"] = None

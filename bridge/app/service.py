@@ -126,11 +126,26 @@ class BridgeService:
                                        self.ingest, self.pipeline, self.output, self.watch,
                                        self.mqtt)
         self.recorder: TlogRecorder | None = None
+        self.web = self._web_view() if cfg.web is not None else None
+        self.reporter.web = self.web
         #: Told each estimator's name before and its seconds after it is compiled.
         self.on_progress: Progress | None = None
         #: Called after every status report (the live table).
         self.on_status: Callable[[BridgeService], None] | None = None
         self.ready = asyncio.Event()
+
+    def _web_view(self) -> Any:
+        """The live web view (bokeh, from the report extra, serves its drawing code)."""
+        try:
+            from ..publish.web import WebView, parse_web
+        except ImportError as exc:
+            raise ValueError(f"--web needs {exc.name}: pip install "
+                             "'attitude-bridge[report]'") from None
+        from ..publish.snapshot import take
+
+        host, port = parse_web(self.cfg.web)
+        return WebView(host, port, lambda: take(self.registry.vehicles, self.pipeline,
+                                                self.reporter.last))
 
     # --- what the parts know, for the table, the CLI and the tests -----------------------
     @property
@@ -189,12 +204,16 @@ class BridgeService:
             await self.link.start()
             for out in self.outs:
                 await out.start()
+            if self.web is not None:
+                self.web.start()  # before the warm-up: the page is there at once
             warm_up_all(self.pipeline.specs, self.on_progress)
             self.reporter.restart_clock()
             if self.mqtt is not None:
                 mqtt_task = asyncio.create_task(self.mqtt.run(), name="mqtt")
             tasks.append(asyncio.create_task(self._heartbeat_loop(), name="heartbeat"))
             tasks.append(asyncio.create_task(self._status_loop(), name="status"))
+            if self.web is not None:
+                tasks.append(asyncio.create_task(self._web_loop(), name="web"))
             if self.emulator is not None:
                 tasks.append(asyncio.create_task(self._run_emulator(stop), name="emulator"))
             self.ready.set()
@@ -211,6 +230,8 @@ class BridgeService:
                     self.presence.all_offline()
                 await self._flush_mqtt()
             await self._stop_mqtt(mqtt_task)
+            if self.web is not None:
+                self.web.close()
             await self.link.close()
             for out in self.outs:
                 await out.close()
@@ -259,6 +280,21 @@ class BridgeService:
                 self._periodic(time.monotonic())
             except Exception:
                 log.exception("status update failed")
+
+    async def _web_loop(self) -> None:
+        from ..publish.web import FRAME_HZ
+
+        assert self.web is not None
+        loop = asyncio.get_running_loop()
+        period = 1.0 / FRAME_HZ
+        due = loop.time()
+        while True:
+            due = max(due + period, loop.time())  # on schedule; never a burst to catch up
+            await asyncio.sleep(due - loop.time())
+            try:
+                self.web.tick()
+            except Exception:
+                log.exception("web view update failed")
 
     def _periodic(self, now: float) -> None:
         """Once per status period: retries, eviction, the stream watch, presence, the

@@ -55,6 +55,7 @@ class StatusReporter:
         self.watch = watch
         self.mqtt = mqtt
         self.recorder: TlogRecorder | None = None
+        self.web: Any = None  # the live web view (bridge.publish.web), when served
         self.topics = topics_of(pipeline.specs)
         self.started = time.monotonic()
         self.last: dict[int, dict[str, Any]] = {}
@@ -181,6 +182,8 @@ class StatusReporter:
             s["mqtt"] = {"connected": m.connected, "published": m.published,
                          "dropped": m.dropped, "connects": m.connects,
                          "last_error": m.last_error or None, "stopped": m.stopped}
+        if self.web is not None:
+            s["web"] = self.web.status()
         if self.recorder is not None:
             s["record"] = {"file": str(self.recorder.path), "frames_in":
                            self.recorder.frames_in, "frames_out": self.recorder.frames_out}

@@ -49,6 +49,8 @@ def render(service: BridgeService) -> str:
              f"frame {link['bad_frame']}, unsigned {link['unsigned_rejected']}"]
     if "mqtt" in link:
         lines[0] += "  " + mqtt_text(link["mqtt"])
+    if "web" in link:
+        lines[0] += f"  web {link['web']['url']} ({link['web']['viewers']} viewing)"
     lines.append("")
     lines.append(" SYS   RATE Hz  SAMPLES  OUT      DROPS (dup/reord/jump/back/nan)   "
                  "LOST  LAT p50/p99 ms")

@@ -46,7 +46,8 @@ class AttitudeOutput:
         self._next_t: dict[SourceKey, float] = {}
         self.sent: dict[int, int] = {}  # per sysid: estimates sent
         self.held: dict[int, int] = {}  # per sysid: estimates not sent while initialising
-        self.latency = TimeRing(latency_samples, 1)  # seconds, IMU read -> output written
+        # seconds, IMU datagram arrived (its kernel time over UDP) -> output written
+        self.latency = TimeRing(latency_samples, 1)
 
     def offer(self, est: Estimate) -> bool:
         """Send ``est`` if it is due under the output rate; True if sent."""

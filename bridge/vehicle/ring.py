@@ -29,6 +29,13 @@ class TimeRing:
     def last_t(self) -> float:
         return float(self.t[self._i - 1]) if self._n else float("nan")
 
+    def last(self) -> tuple[float, np.ndarray] | None:
+        """The newest (time, row), or None when empty."""
+        if not self._n:
+            return None
+        i = self._i - 1
+        return float(self.t[i]), self.v[i].copy()
+
     def snapshot(self, since: float = -np.inf) -> tuple[np.ndarray, np.ndarray]:
         """(times, rows) in push order, only rows with time >= since."""
         cap = self.t.shape[0]

@@ -135,6 +135,10 @@ class Link:
         self.stats = LinkStats()
         self.last_receive = 0.0  # time.monotonic() of the last valid message
         self.last_addr: tuple | None = None  # sender of the message being handled
+        #: How long the datagram being handled waited in the kernel before it was read
+        #: (UDP, from its kernel receive time; 0 where there is none): what a busy event
+        #: loop costs a sample, counted in its latency.
+        self.waited_s = 0.0
         self.gate: Gate | None = None
         self.tap: Tap | None = None
 

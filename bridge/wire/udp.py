@@ -13,6 +13,8 @@ import asyncio
 import contextlib
 import logging
 import socket
+import struct
+import sys
 import time
 
 from .codec import SigningConfig
@@ -31,6 +33,12 @@ from .link import (
 from .mav import MAVLinkMessage
 
 log = logging.getLogger(__name__)
+
+#: Linux's SO_TIMESTAMPNS (asm-generic/socket.h; Python's socket module lacks it): each
+#: datagram carries the time the kernel received it, as a struct timespec.
+SO_TIMESTAMPNS = 35
+_TIMESPEC = struct.Struct("@qq")
+_ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size)
 
 
 class UdpLink(Link):
@@ -111,6 +119,11 @@ class UdpLink(Link):
             reason = BIND_REASONS.get(exc.errno, exc.strerror or str(exc))
             raise LinkError(f"{self.name}: cannot open {address[0]}:{address[1]}: "
                             f"{reason}") from None
+        self._stamped = False
+        if sys.platform.startswith("linux"):
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+                self._stamped = True
         self._sock = sock
         asyncio.get_running_loop().add_reader(sock.fileno(), self._readable)
 
@@ -126,10 +139,14 @@ class UdpLink(Link):
         if sock is None:
             return
         gate = self.gate
-        recv = sock.recvfrom
+        stamped = self._stamped
         for _ in range(MAX_DATAGRAMS_PER_WAKEUP):
             try:
-                data, addr = recv(65536)
+                if stamped:
+                    data, ancillary, _, addr = sock.recvmsg(65536, _ANCILLARY)
+                else:
+                    data, addr = sock.recvfrom(65536)
+                    ancillary = ()
             except (BlockingIOError, InterruptedError):
                 return
             except OSError:  # e.g. ICMP port unreachable reported on a udpout socket
@@ -138,6 +155,14 @@ class UdpLink(Link):
             if gate is not None and not gate(data):
                 self.stats.gate_refused += 1
                 continue
+            self.waited_s = 0.0
+            for level, kind, value in ancillary:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and \
+                        len(value) >= _TIMESPEC.size:
+                    sec, nsec = _TIMESPEC.unpack_from(value)
+                    waited = time.time() - (sec + nsec * 1e-9)
+                    # (a clock stepped meanwhile says nothing about the wait)
+                    self.waited_s = waited if 0.0 <= waited < 1.0 else 0.0
             self.last_addr = addr
             self._received(data, datagram=True, addr=addr)
             if self._sock is None:

@@ -137,12 +137,22 @@ def test_page_shows_every_estimator_and_reference_live(bridge, browser):
     assert names == ["eskf", "mahony", "vehicle", "truth"]
     assert page.get_attribute('.indicator[data-series="eskf"]', "class") == "indicator primary"
     # it updates at the frame rate, and the plots fill (BokehJS drew them)
+    web0, t0 = bridge.web, time.monotonic()
     frames0 = page.evaluate("window.attitudeView.frames")
     angles0 = page.inner_text('.indicator[data-series="eskf"] .angles')
     time.sleep(6.0)
+    web1, t1 = bridge.web, time.monotonic()
     frames1 = page.evaluate("window.attitudeView.frames")
-    # FRAME_HZ >= 10 frames a second arrive (a 6 s window holds one frame more or less)
-    assert FRAME_HZ >= 10.0 and frames1 - frames0 >= 6.0 * FRAME_HZ - 1
+    # The bridge makes FRAME_HZ >= 10 frames a second (the status file is a second old
+    # at most at either end), and every one of them either reached this page (the only
+    # viewer) or was dropped because the page was still busy with the one before (a
+    # loaded machine): none is lost or queued.
+    made = web1["frames"] - web0["frames"]
+    assert FRAME_HZ >= 10.0 and made >= FRAME_HZ * (t1 - t0 - 2.0)
+    dropped = web1["frames_dropped"] - web0["frames_dropped"]
+    assert abs((frames1 - frames0) + dropped - made) <= 2 * FRAME_HZ, (frames1 - frames0,
+                                                                      dropped, made)
+    assert frames1 - frames0 >= 2.0 * (t1 - t0)  # and it does update
     assert page.inner_text('.indicator[data-series="eskf"] .angles') != angles0
     points = page.evaluate("Object.values(window.attitudeView.vehicles['1'].sources)"
                            ".map(s => s.data.t.length)")
@@ -223,10 +233,11 @@ def test_a_slow_viewer_loses_frames_not_memory(bridge):
     code, sock = _handshake(host, int(port), origin=f"http://{host}:{port}", rcvbuf=4096)
     assert code == 101
     samples0 = bridge.status()["vehicles"]["1"]["samples"]
+    # (its buffers, 64 KB on our side, fill at 10 frames of ~1.5 KB a second)
     st = bridge.wait_for(lambda s: s["connection"]["web"]["frames_dropped"]
-                         > before["frames_dropped"] + 20, 15, "frames dropped")
+                         > before["frames_dropped"] + 10, 45, "frames dropped")
     assert st["connection"]["web"]["viewers"] >= 1
-    assert st["vehicles"]["1"]["samples"] > samples0 + 250  # estimating at full rate
+    assert st["vehicles"]["1"]["samples"] > samples0 + 250  # estimating meanwhile
     sock.close()
     bridge.wait_for(lambda s: s["connection"]["web"]["viewers"] == 0, 20, "the slow viewer gone")
 

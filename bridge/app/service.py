@@ -289,8 +289,10 @@ class BridgeService:
         period = 1.0 / FRAME_HZ
         due = loop.time()
         while True:
-            due = max(due + period, loop.time())  # on schedule; never a burst to catch up
-            await asyncio.sleep(due - loop.time())
+            due += period  # on schedule on average, a late frame does not cost one
+            if loop.time() - due > 1.0:  # starved for a second: start the schedule again
+                due = loop.time()
+            await asyncio.sleep(max(0.0, due - loop.time()))
             try:
                 self.web.tick()
             except Exception:

@@ -84,14 +84,13 @@ def floor_cost(packets: list[bytes]) -> float:
 
 # --- sender process ------------------------------------------------------------------
 
-def _sender(port: int, rate_hz: float, n: int, result: mp.Queue, pace: bool,
-            start_us: int = 1_000_000) -> None:
+def _sender(port: int, rate_hz: float, n: int, result: mp.Queue, pace: bool) -> None:
     """Send n RAW_IMU (paced at rate_hz or as fast as the socket takes them); time the
     ATTITUDE_QUATERNION replies on this process's clock."""
     others = set(range(os.cpu_count() or 1)) - {BRIDGE_CPU}
     with contextlib.suppress(AttributeError, OSError, ValueError):
         os.sched_setaffinity(0, others or {BRIDGE_CPU})  # not on the bridge's core
-    packets = encoded_raw_imu(n, rate_hz, start_us=start_us)
+    packets = encoded_raw_imu(n, rate_hz)
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 * 1024 * 1024)
     sock.bind(("127.0.0.1", 0))

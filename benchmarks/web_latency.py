@@ -117,8 +117,8 @@ def _status(path: Path) -> dict:
         return {}
 
 
-def one_run(browser, viewers: int, folder: Path, shared: bool, elsewhere: str | None
-            = None) -> dict:
+def one_run(browser, viewers: int, folder: Path, shared: bool,
+            elsewhere: str | None = None) -> dict:
     """One bridge, ``viewers`` pages on it (or on the bridge at ``elsewhere``)."""
     port = free_udp_port()
     status = folder / f"status_{port}.json"

@@ -274,7 +274,7 @@ def test_port_in_use_is_one_line_and_exit_2(tmp_path):
     assert out.returncode == 2, out.stderr
     lines = out.stderr.strip().splitlines()
     assert lines[-1] == (f"attitude-bridge run: error: --web 127.0.0.1:{port}: address already in "
-                         "use (another program, or another bridge, serves on that port)")
+                         "use (another program, or another bridge, is listening on that port)")
     assert "Traceback" not in out.stderr
 
 

@@ -24,7 +24,6 @@ WebSocket that only sends; no control of any kind), same-origin WebSockets only.
 from __future__ import annotations
 
 import asyncio
-import errno
 import json
 import logging
 import socket
@@ -41,6 +40,8 @@ from bokeh import __version__ as bokeh_version
 from bokeh.util.paths import bokehjs_path
 from tornado.httpserver import HTTPServer
 from tornado.netutil import bind_sockets
+
+from ..wire.link import BIND_REASONS
 
 log = logging.getLogger(__name__)
 
@@ -111,11 +112,7 @@ class WebView:
         try:
             sockets = bind_sockets(self.port, self.host)
         except OSError as exc:
-            reason = {errno.EADDRINUSE: "address already in use (another program, or "
-                                        "another bridge, serves on that port)",
-                      errno.EADDRNOTAVAIL: "that address is not on this machine",
-                      errno.EACCES: "permission denied (ports below 1024 need "
-                                    "privileges)"}.get(exc.errno, exc.strerror or str(exc))
+            reason = BIND_REASONS.get(exc.errno, exc.strerror or str(exc))
             raise WebViewError(f"--web {self.host}:{self.port}: {reason}") from None
         except (UnicodeError, ValueError) as exc:  # a host name that is no host name
             raise WebViewError(f"--web {self.host}:{self.port}: {exc}") from None

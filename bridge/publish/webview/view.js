@@ -98,7 +98,6 @@ class VehicleView {
     this.series = [...v.labels, "vehicle", "truth"];
     this.primary = v.primary;
     this.lastT = {};
-    this.lastErrorT = null;
     const section = el("section", { class: "vehicle", "data-sysid": sysid });
     section.append(el("h2", { "data-field": "title" }, `Vehicle ${sysid}`));
     this.facts = el("div", { class: "facts" });

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Installs attitude-bridge with its test tools and the report extra (bokeh, matplotlib)
+# Installs attitude-bridge with its test tools, the report extra (bokeh, matplotlib)
+# and the cluster extra (dask.distributed, for `replay`/`tune --scheduler`)
 # into the current Python environment (editable), plus mosquitto, zstd and chromium (for
 # the integration tests' MQTT broker, real autopilots and the web view's browser tests)
 # from Debian when root; then compiles the estimators ahead
@@ -25,4 +26,4 @@ if [ ${#missing[@]} -gt 0 ]; then
     fi
 fi
 python -m pip install -q --upgrade pip
-bash docker/setup.sh -e . "test,report"
+bash docker/setup.sh -e . "test,report,cluster"

@@ -129,6 +129,7 @@ def one_run(browser, viewers: int, folder: Path, shared: bool,
          "--out-rate", "0", "--imu-rate", str(RATE_HZ), "-e", "eskf", "-e", "mahony",
          "-e", "madgwick", "-q"], stdout=subprocess.DEVNULL)
     contexts = []
+    launched = time.monotonic()
     try:
         end = time.monotonic() + 60
         while not _status(status).get("connection", {}).get("web"):
@@ -155,6 +156,7 @@ def one_run(browser, viewers: int, folder: Path, shared: bool,
         sender.join()
         frames = [p.evaluate("window.attitudeView.frames") for _, p in contexts]
         st = _status(status)
+        up_s = time.monotonic() - launched
     finally:
         for context, _ in contexts:
             context.close()
@@ -170,6 +172,9 @@ def one_run(browser, viewers: int, folder: Path, shared: bool,
             "max_ms": float(lat.max()),
             "in_bridge_p99_ms": vehicle.get("latency_ms", {}).get("p99"),
             "frames_dropped": st.get("connection", {}).get("web", {}).get("frames_dropped"),
+            # the view's own time on the bridge's event loop, per second of the run
+            "view_work_ms_per_s": round(st.get("connection", {}).get("web", {})
+                                        .get("work_ms", 0.0) / up_s, 3),
             "frames_seen_by_pages": frames, "pages_drawing_after_s": round(ready_s, 1)}
 
 
@@ -230,6 +235,18 @@ def main() -> None:
     base = summary["none"]["p99_ms_median"]
     for name, _, _ in conditions[1:]:
         summary[name]["p99_vs_none"] = round(summary[name]["p99_ms_median"] / base, 3)
+    for name, _, _ in conditions:
+        mine = [r for r in runs if r["condition"] == name]
+        summary[name]["in_bridge_p99_ms_runs"] = [r["in_bridge_p99_ms"] for r in mine]
+        summary[name]["view_work_ms_per_s_median"] = round(float(np.median(
+            [r["view_work_ms_per_s"] for r in mine])), 3)
+    # The same machine load, with and without work for this bridge: the five pages draw
+    # in both, watching this bridge or another one (round by round).
+    same = [a["p99_ms"] / b["p99_ms"] for a, b in zip(
+        (r for r in runs if r["condition"] == "5 viewers"),
+        (r for r in runs if r["condition"] == "5 viewers of another bridge"), strict=True)]
+    summary["5 viewers"]["p99_vs_same_load_runs"] = [round(x, 3) for x in same]
+    summary["5 viewers"]["p99_vs_same_load_median"] = round(float(np.median(same)), 3)
     report = {"rate_hz": RATE_HZ, "measure_s": MEASURE_S, "shared_cores": args.shared,
               "summary": summary, "runs": runs}
     print(json.dumps(summary, indent=2))

@@ -15,10 +15,11 @@ import numpy as np
 
 from .base import BatchResult, Estimator, EstimatorStatus, SampleCounters
 from .registry import estimator_class, names, register
+from .smoother import SmoothResult, smooth
 
 __all__ = [
-    "BatchResult", "Estimator", "EstimatorStatus", "SampleCounters",
-    "batch", "create", "estimator_class", "names", "register", "run",
+    "BatchResult", "Estimator", "EstimatorStatus", "SampleCounters", "SmoothResult",
+    "batch", "create", "estimator_class", "names", "register", "run", "smooth",
 ]
 
 

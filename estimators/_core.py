@@ -404,6 +404,12 @@ def make_kernels(step, takes_velocity: bool = False):
     and twelve scalars per sample cost more than most filters' arithmetic. The drivers
     are cached on disk keyed by the step's source file (see _StepKeyedCache).
     """
+    process = _make_process(step, takes_velocity)
+    return _make_drivers(process, step, takes_velocity)
+
+
+def _make_process(step, takes_velocity: bool):
+    """The per-sample driver around ``step`` (inlined into the batch drivers)."""
     step = njit(inline="always")(getattr(step, "py_func", step))
 
     @njit(inline="always")
@@ -461,6 +467,12 @@ def make_kernels(step, takes_velocity: bool = False):
             flags |= F_AIR_MODEL
         return flags | F_INITIALISED
 
+    return process
+
+
+def _make_drivers(process, step, takes_velocity: bool):
+    """(update_one, run_batch) around one estimator's ``process``."""
+
     def update_one(ws, g, a, m, dt, v, v_age) -> int:
         """One sample on a workspace (see make_workspace); -1 if a vector is not (3,)."""
         if g.shape[0] != 3 or a.shape[0] != 3 or v.shape[0] != 3:
@@ -498,6 +510,47 @@ def make_kernels(step, takes_velocity: bool = False):
 
     variant = f"takes_velocity={takes_velocity}"
     return (_cached_njit(update_one, step, variant), _cached_njit(run_batch, step, variant))
+
+
+def make_tapped_driver(step, tap_at: int, tap_size: int):
+    """run_batch that also copies out a block of the state the step writes at chosen
+    moments (an offline pass over the recording needs what the online filter knew then,
+    e.g. a Kalman filter's prior and posterior for a smoother).
+
+    ``state[tap_at:tap_at + tap_size]`` is the block; its first element is set by the
+    step when the block is fresh and the second may flag a break (both cleared here
+    after each copy). ``run_tapped(..., TAP, AT, n)`` copies block k into ``TAP[n + k]``
+    and the sample index into ``AT[n + k]`` and returns the new count, which goes past
+    ``TAP.shape[0]`` (without copying) when TAP is too small.
+    """
+    process = _make_process(step, True)
+
+    def run_tapped(state, params, common, G, A, M, has_mag, dts, counters,
+                   Q, B, F, V, V_AGE, TAP, AT, n, offset) -> int:
+        single_dt = dts.shape[0] == 1
+        has_vel = V.shape[0] == G.shape[0]
+        single_age = V_AGE.shape[0] == 1
+        for i in range(G.shape[0]):
+            dt = dts[0] if single_dt else dts[i]
+            j = i if has_mag else 0
+            k = i if has_vel else 0
+            age = V_AGE[0] if single_age else V_AGE[i]
+            F[i] = process(state, params, common, G[i, 0], G[i, 1], G[i, 2],
+                           A[i, 0], A[i, 1], A[i, 2], M[j, 0], M[j, 1], M[j, 2],
+                           has_mag, dt, counters, V[k, 0], V[k, 1], V[k, 2], age)
+            write_output_row(state, common, Q, i)
+            B[i, 0], B[i, 1], B[i, 2] = state[B0], state[B0 + 1], state[B0 + 2]
+            if state[tap_at] > 0.0:
+                if n < TAP.shape[0]:
+                    for c in range(tap_size):
+                        TAP[n, c] = state[tap_at + c]
+                    AT[n] = offset + i
+                n += 1
+                state[tap_at] = 0.0
+                state[tap_at + 1] = 0.0
+        return n
+
+    return _cached_njit(run_tapped, step, f"tapped={tap_at},{tap_size}")
 
 
 class _StepKeyedCache(FunctionCache):

@@ -74,6 +74,11 @@ the velocity information), the bias random walk and a velocity random walk.
   undisturbed field rejected by the chi-square test for ``mag_reset_time`` resets the
   heading to it (as PX4's EKF2 resets its yaw): our heading is what went wrong.
 
+Every Kalman step leaves its prediction and its result (state, covariance, the
+transition's ingredients) in the state's ``TAP`` block, and flags the re-anchorings done
+outside the update: what :mod:`estimators.smoother` reads to smooth a whole recording
+afterwards with the same model. The online filter writes it and never reads it.
+
 Defaults, and on which data they were chosen (none of this is "data never seen"):
 rest and magnetic-disturbance thresholds are VQF's published values. The noise
 densities on ``benchmarks/accuracy.py``'s grid were chosen on all of its dev recordings
@@ -272,9 +277,29 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _K,  # scratch: gain (_NX × 3)
  _X,  # scratch: error-state correction (_NX)
  _JA, _JB,  # scratch: Joseph form's I − K·H and (I − K·H)·P (_NX × _NX each)
+ TAP,  # what the smoother needs of the last Kalman step (TAP_* below)
  _STATE_SIZE) = _layout(3, 1, _NX * _NX, 1, 1, 1, 3, 3, 3, 1, 3, 3, 3, 3, 3, 3, 1, 1, 1, 1,
                         1, 1, 1, 1, 1, 1, 1, 1, 1, 3, 1, 1, 3, 1, 3, 1, 1, 1, 1, 1,
-                        3 * _NX, 3 * _NX, 3 * _NX, _NX, _NX * _NX, _NX * _NX)
+                        3 * _NX, 3 * _NX, 3 * _NX, _NX, _NX * _NX, _NX * _NX,
+                        15 + 2 * (11 + _NX * _NX))
+
+# The tap (offsets in the TAP block): every Kalman step leaves here what a
+# Rauch-Tung-Striebel pass over the recording needs (estimators.smoother), and the
+# tapped driver copies it out; the online filter writes it and never reads it.
+#: 1 once a Kalman step has written the tap (the tapped driver clears it).
+TAP_FLAG = 0
+#: 1 when the step re-anchored a state outside the Kalman update (velocity, heading):
+#: the smoother does not carry corrections across it.
+TAP_BREAK = 1
+TAP_T = 2  # the update period [s]
+TAP_R = 3  # 9: R (row-major) the prediction used
+TAP_DV = 12  # 3: ∫R·f dt over the period (world)
+#: nominal state after the prediction: q (4), b (3), v (3), μ, then P (_NX × _NX)
+TAP_PRIOR = 15
+TAP_NOMINAL = 11
+#: the same after the step's updates
+TAP_POST = TAP_PRIOR + TAP_NOMINAL + _NX * _NX
+TAP_SIZE = TAP_POST + TAP_NOMINAL + _NX * _NX
 
 
 @_core.kernel(inline="always")
@@ -367,6 +392,32 @@ def _inject(state: np.ndarray, params: np.ndarray) -> None:
     state[_MUS] = max(state[_MUS] + state[x + _MU], 0.0)
     for j in range(_NX):
         state[x + j] = 0.0
+
+
+@_core.kernel
+def _tap_state(state: np.ndarray, at: int) -> None:
+    """Nominal state and covariance into the tap at ``at``."""
+    for j in range(4):
+        state[at + j] = state[j]
+    for j in range(3):
+        state[at + 4 + j] = state[_core.B0 + j]
+        state[at + 7 + j] = state[_V + j]
+    state[at + 10] = state[_MUS]
+    for j in range(_NX * _NX):
+        state[at + TAP_NOMINAL + j] = state[_P + j]
+
+
+@_core.kernel
+def _tap_prediction(state: np.ndarray, T: float, r: tuple) -> None:
+    """The prediction's ingredients (F = I + [δθ ← −R·T·δb, δv ← −[ΔV]×·δθ]) and the
+    predicted state."""
+    t = TAP
+    state[t + TAP_T] = T
+    for j in range(9):
+        state[t + TAP_R + j] = r[j]
+    for j in range(3):
+        state[t + TAP_DV + j] = state[_DV + j]
+    _tap_state(state, t + TAP_PRIOR)
 
 
 @_core.kernel
@@ -503,6 +554,7 @@ def _clear_rows(state: np.ndarray, m: int) -> None:
 def _reset_velocity(state: np.ndarray, vx: float, vy: float, vz: float, sigma: float) -> None:
     """Re-anchor the velocity (attitude untouched): v ← given, its correlations forgotten."""
     state[_V], state[_V + 1], state[_V + 2] = vx, vy, vz
+    state[TAP + TAP_BREAK] = 1.0
     for i in range(3):
         for j in range(_NX):
             state[_pi(_VE + i, j)] = 0.0
@@ -731,6 +783,7 @@ def _reset_heading(state: np.ndarray, params: np.ndarray, nu: float) -> None:
     state[_pi(2, 2)] = params[_I.heading_init] ** 2
     state[_X + 2] = nu
     _inject(state, params)
+    state[TAP + TAP_BREAK] = 1.0
     state[_MAG_REJ_T] = 0.0
 
 
@@ -876,8 +929,9 @@ def _drag_model_on(state: np.ndarray, params: np.ndarray, T: float, r: tuple) ->
 @_core.kernel
 def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
     """Everything done once per update period."""
-    _predict_covariance(state, params, T)
     r = _rotation(state)
+    _predict_covariance(state, params, T)
+    _tap_prediction(state, T, r)
     state[_core.ACC_REJ] = 0.0
     if state[_FB_T] <= 0.0:
         # Nothing measured the specific force: the velocity says nothing about the tilt.
@@ -931,6 +985,8 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
         state[_MAG_OK] = 0.0
     else:
         state[_core.MAG_REJ] = 0.0
+    _tap_state(state, TAP + TAP_POST)
+    state[TAP + TAP_FLAG] = 1.0
 
 
 @_core.kernel

@@ -22,19 +22,38 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Replay a log through estimators in batch and score them against "
                     "truth when the file has it, else against the autopilot's attitude. "
                     "Default estimators: every registered one except the gyro-only "
-                    "integrators (euler, dcm, quaternion).")
-    p.add_argument("file", type=Path)
+                    "integrators (euler, dcm, quaternion). Several logs (files, folders: "
+                    "every log inside, recursively; quoted glob patterns) are a corpus: "
+                    "replayed in parallel, one summary per log, per estimator, per vehicle "
+                    "type and per flight phase; a log that fails is reported with its "
+                    "reason and the rest go on (exit 0 if any log was scored, else 2).")
+    p.add_argument("paths", type=Path, nargs="+", metavar="PATH",
+                   help="a log file; or several files, folders, patterns (a corpus)")
     p.add_argument("--estimator", "-e", action="append", default=[], metavar="NAME[:k=v,...]",
                    help="estimator with optional parameters; repeat to compare several")
+    p.add_argument("--smooth", action="store_true",
+                   help="also the eskf smoothed over the whole recording (forward, then "
+                        "back: the best attitude the log allows); without a truth in the "
+                        "log, every estimator and the autopilot are also scored against it "
+                        "(labelled: it is not truth)")
     p.add_argument("--report", type=Path, metavar="OUT.html",
                    help="write a self-contained interactive HTML report (needs the "
-                        "'report' extra: bokeh)")
-    p.add_argument("--json", type=Path, metavar="OUT.json", help="write the scores as JSON")
+                        "'report' extra: bokeh); a corpus: the summary's tables and a "
+                        "box chart per estimator")
+    p.add_argument("--json", type=Path, metavar="OUT.json",
+                   help="write the scores as JSON (a corpus: the summary)")
     p.add_argument("--csv", type=Path, metavar="OUT.csv",
                    help="write the time series (t, q and Euler per estimator, reference, "
-                        "errors, flags) for PlotJuggler or pandas")
+                        "errors, flags) for PlotJuggler or pandas; a corpus: one row of "
+                        "scores per log")
     p.add_argument("--png", type=Path, metavar="DIR",
-                   help="write the figures as PNG files into DIR (needs matplotlib)")
+                   help="write the figures as PNG files into DIR (needs matplotlib); one "
+                        "log only, refused for a corpus")
+    p.add_argument("--jobs", "-j", type=int, default=None,
+                   help="several logs: processes (default: cores)")
+    p.add_argument("--quiet", "-q", action="store_true",
+                   help="several logs: no progress bar")
+    _scheduler_option(p)
     _input_options(p)
     p.set_defaults(func=_replay)
 
@@ -43,7 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Search a parameter grid for the set minimising the mean total RMSE "
                     "over all files (one parameter set for all, as in BROAD). Ctrl-C "
                     "stops early and keeps the points done so far.")
-    t.add_argument("files", type=Path, nargs="+", metavar="FILE")
+    t.add_argument("files", type=Path, nargs="+", metavar="PATH",
+                   help="log files, folders (every log inside, recursively), patterns")
     t.add_argument("--estimator", "-e", required=True, help="estimator name")
     t.add_argument("--param", "-p", action="append", default=[], required=True,
                    metavar="NAME=LO:HI:N", help="swept parameter (LO:HI:N linspace, "
@@ -55,8 +75,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--heatmap", type=Path, metavar="OUT.png",
                    help="figure of mean total RMSE over the first two swept parameters")
     t.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    t.add_argument("--cross-validate", action="store_true",
+                   help="also choose the grid point on all logs but one (or one group) and "
+                        "score it on the held-out one: the cross-validated error beside "
+                        "the in-sample one (computed from the same sweep)")
+    t.add_argument("--group-by", choices=("log", "folder"), default="log",
+                   help="with --cross-validate: hold out one log (default) or one folder "
+                        "of logs at a time")
+    _scheduler_option(t)
     _input_options(t)
     t.set_defaults(func=_tune)
+
+
+def _scheduler_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
+                   help="run on this Dask cluster instead of local processes (replay: "
+                        "with several logs; extra 'cluster'; every worker reads the logs at "
+                        "the same paths)")
 
 
 def _input_options(p: argparse.ArgumentParser) -> None:
@@ -137,7 +172,13 @@ def _replay(args: argparse.Namespace) -> int:
     from estimators.spec import EstimatorSpec
 
     from .evaluate import evaluate
+    from .logpaths import is_corpus
 
+    if is_corpus(args.paths):
+        from .corpus_cli import replay_corpus
+
+        return replay_corpus(args)
+    args.file = args.paths[0]
     try:
         for path, option in ((args.report, "--report"), (args.json, "--json"),
                              (args.csv, "--csv")):
@@ -152,7 +193,7 @@ def _replay(args: argparse.Namespace) -> int:
         if args.init == "reference" and rec.reference is None:
             raise ReplayInputError(f"{args.file}: --init reference needs a reference attitude")
         ev = evaluate(rec, specs, init=args.init, declination_deg=args.declination_deg,
-                      aid=args.aid or "auto")
+                      aid=args.aid or "auto", smooth=args.smooth)
     except (ReplayInputError, ValueError) as exc:
         return _fail("replay", exc)
     from .summary import print_summary
@@ -185,31 +226,41 @@ def _replay(args: argparse.Namespace) -> int:
 def _tune(args: argparse.Namespace) -> int:
     from estimators.spec import EstimatorSpec
 
+    from .crossval import check_groups, cross_validate
     from .evaluate import prepare
+    from .logpaths import expand
     from .tune import parse_param, sweep
+    from .tune_tasks import TuneInputs, sweep_on_cluster, tunable
 
     try:
         check_output_file(args.out, "--out")
         check_output_file(args.heatmap, "--heatmap")
         if args.heatmap:
             require_module("matplotlib", "--heatmap")
+        if args.group_by != "log" and not args.cross_validate:
+            raise ReplayInputError("--group-by goes with --cross-validate")
         axes = [parse_param(p) for p in args.param]
         fixed = EstimatorSpec.parse(f"{args.estimator}:{','.join(args.set)}").params
-        prepared = []
-        for path in args.files:
-            prep = prepare(_load(path, args), declination_deg=args.declination_deg,
-                           aid=args.aid or "auto")
-            if prep.q_ref is None or not prep.scored.any():
-                raise ReplayInputError(f"{path}: no reference attitude to tune against"
-                                       + (f" ({prep.unscored})" if prep.unscored else ""))
-            prepared.append(prep)
-        result = sweep(prepared, args.estimator, axes, fixed, jobs=args.jobs,
-                       init=args.init, progress=not args.quiet)
+        files = expand(args.files)
+        if args.cross_validate:
+            check_groups([str(f) for f in files], args.group_by)
+        if args.scheduler:
+            inputs = TuneInputs(args.board, args.imu, args.reference, args.declination_deg,
+                                args.aid or "auto")
+            result = sweep_on_cluster(files, inputs, args.estimator, axes, fixed, args.init,
+                                      args.scheduler, progress=not args.quiet)
+            prepared = files
+        else:
+            prepared = [tunable(prepare(_load(path, args), declination_deg=args.declination_deg,
+                                        aid=args.aid or "auto"), path) for path in files]
+            result = sweep(prepared, args.estimator, axes, fixed, jobs=args.jobs,
+                           init=args.init, progress=not args.quiet)
         done = int(result.done.sum())
         if result.interrupted:
             print(f"interrupted: {done} of {len(result.points)} parameter sets done",
                   file=sys.stderr)
         best = result.best if done else None
+        cv = cross_validate(result, args.group_by) if args.cross_validate and done else None
     except KeyboardInterrupt:  # while loading, before any point was scored
         print("attitude-bridge tune: interrupted before any parameter set was scored",
               file=sys.stderr)
@@ -225,10 +276,14 @@ def _tune(args: argparse.Namespace) -> int:
               + ("  [6D: minimised inclination]" if result.objective == "inclination" else ""))
         for path, total in zip(result.files, result.total[i], strict=True):
             print(f"  {Path(path).name}: total {total:.3f} deg")
+    if cv is not None:
+        print("\n".join(cv.lines()))
     try:
-        if args.out:
-            (result.write_json if args.out.suffix.lower() == ".json"
-             else result.write_csv)(args.out)
+        if args.out and args.out.suffix.lower() == ".json":
+            result.write_json(args.out, {"cross_validation": cv.as_json()} if cv else None)
+            print(f"sweep: {args.out}")
+        elif args.out:
+            result.write_csv(args.out)
             print(f"sweep: {args.out}")
         if args.heatmap and done:
             from .figures import save_png, sweep_figure

@@ -145,6 +145,9 @@ class Recording:
     state_events_source: str = ""  # the messages / topics they came from
     #: every kind of reference the file has (REFERENCE_KINDS), whichever was loaded
     references: tuple[str, ...] = ()
+    #: the autopilot's own attitude when ``reference`` is another kind (the truth), to
+    #: score it beside the estimators; None otherwise
+    autopilot: Reference | None = None
 
     def __post_init__(self) -> None:
         if self.reference is not None and self.reference.kind not in self.references:

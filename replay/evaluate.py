@@ -152,6 +152,19 @@ def run_estimator(prep: Prepared, spec: EstimatorSpec, init: str = "sensors") ->
     compare filters without the initial-heading question, e.g. PX4 applies declination).
     """
     rec = prep.recording
+    sl, q0, params = run_inputs(prep, spec, init)
+    est = estimators.create(spec.name, rate_hz=rec.rate_hz, world=rec.world, q0=q0, **params)
+    began = time.perf_counter()
+    res = est.run(rec.gyr[sl], rec.acc[sl], None if rec.mag is None else rec.mag[sl],
+                  dt=rec.dt[sl], **aiding_kwargs(prep, sl), **flight_kwargs(prep, sl))
+    seconds = time.perf_counter() - began
+    return placed(prep, spec, sl, res, est.counters, seconds)
+
+
+def run_inputs(prep: Prepared, spec: EstimatorSpec, init: str = "sensors"
+               ) -> tuple[slice, np.ndarray | None, dict]:
+    """Where a run starts, from which attitude, with which parameters (see run_estimator)."""
+    rec = prep.recording
     start, q0 = 0, None
     if init == "reference":
         if prep.q_ref is None or not prep.scored.any():
@@ -162,12 +175,13 @@ def run_estimator(prep: Prepared, spec: EstimatorSpec, init: str = "sensors") ->
         raise ValueError(f"init must be 'sensors' or 'reference', got {init!r}")
     params = {"declination": prep.declination.rad, **model_params(spec.name, rec.mav_type),
               **spec.params}  # -e ...:declination=, :drag= win
-    est = estimators.create(spec.name, rate_hz=rec.rate_hz, world=rec.world, q0=q0, **params)
-    sl = slice(start, None)
-    began = time.perf_counter()
-    res = est.run(rec.gyr[sl], rec.acc[sl], None if rec.mag is None else rec.mag[sl],
-                  dt=rec.dt[sl], **aiding_kwargs(prep, sl), **flight_kwargs(prep, sl))
-    seconds = time.perf_counter() - began
+    return slice(start, None), q0, params
+
+
+def placed(prep: Prepared, spec: EstimatorSpec, sl: slice, res: estimators.BatchResult,
+           counters: estimators.SampleCounters, seconds: float) -> Run:
+    """A batch result over ``sl`` as a Run over the whole recording."""
+    rec = prep.recording
     q = np.full((rec.n, 4), np.nan)
     flags = np.zeros(rec.n, dtype=np.uint8)
     bias = np.full((rec.n, 3), np.nan)
@@ -177,7 +191,7 @@ def run_estimator(prep: Prepared, spec: EstimatorSpec, init: str = "sensors") ->
     air_model = np.zeros(rec.n, dtype=bool)
     air_model[sl] = res.air_model
     bias[sl] = res.bias
-    return Run(spec, q, flags, bias, est.counters, seconds, air_model)
+    return Run(spec, q, flags, bias, counters, seconds, air_model)
 
 
 @dataclass(frozen=True)
@@ -225,9 +239,11 @@ def is_six_d(rec: Recording, name: str) -> bool:
     return rec.mag is None or not getattr(cls, "uses_magnetometer", True)
 
 
-def score(prep: Prepared, run: Run) -> Score:
+def score(prep: Prepared, run: Run, six_d: bool | None = None) -> Score:
+    """``six_d``: judge on inclination only (default: :func:`is_six_d` of the run's
+    estimator; given for an attitude that is no estimator of ours, the autopilot's)."""
     rec = prep.recording
-    six_d = is_six_d(rec, run.spec.name)
+    six_d = is_six_d(rec, run.spec.name) if six_d is None else six_d
     keep = prep.scored & np.all(np.isfinite(run.q), axis=1)
     running = np.all(np.isfinite(run.q), axis=1)
     n_run = max(int(running.sum()), 1)
@@ -344,6 +360,10 @@ class Evaluation:
     runs: dict[str, Run]
     scores: dict[str, Score]
     not_run: str = ""  # why the estimators were not run at all ("" when they were)
+    #: with --smooth on a log without truth: every other run and the autopilot's own
+    #: attitude against the smoothed eskf (not truth: labelled so wherever shown)
+    vs_smoothed: dict[str, Score] = field(default_factory=dict)
+    smoothed_label: str = ""  # the smoothed run's label ("" without --smooth)
 
     @property
     def recording(self) -> Recording:
@@ -390,14 +410,23 @@ class Evaluation:
             "not_scored": self.prepared.unscored or None,
             "not_run": self.not_run or None,
             "estimators": {label: s.as_json() for label, s in self.scores.items()},
+            "vs_smoothed": ({"reference": self.smoothed_label + " (not truth)",
+                             "estimators": {label: s.as_json()
+                                            for label, s in self.vs_smoothed.items()}}
+                            if self.vs_smoothed else None),
         }
 
 
 def evaluate(rec: Recording, specs: list[EstimatorSpec | str] | None = None,
              init: str = "sensors", method: str = "slerp",
              declination_deg: float | None = None, aid: str = "auto",
-             min_rate_hz: float = MIN_RATE_HZ) -> Evaluation:
-    """Run and score every estimator (default: :func:`default_specs`).
+             min_rate_hz: float = MIN_RATE_HZ, smooth: bool = False) -> Evaluation:
+    """Run and score every estimator (default: :func:`default_specs`), and the
+    autopilot's own attitude when the reference is another (the truth).
+
+    ``smooth``: also the first eskf of ``specs`` (or the default eskf) smoothed over the
+    whole recording (:mod:`replay.smoothing`); without a truth, everything is also
+    scored against it (:attr:`Evaluation.vs_smoothed`).
 
     Below ``min_rate_hz`` nothing is run (:attr:`Evaluation.not_run` says why): numbers
     from a gyro sampled a few times a second would describe the sampling, not a filter.
@@ -410,6 +439,20 @@ def evaluate(rec: Recording, specs: list[EstimatorSpec | str] | None = None,
     if rec.rate_hz < min_rate_hz:
         return Evaluation(prep, {}, {}, f"IMU at {rec.rate_hz:.1f} Hz is too slow to estimate "
                                         f"attitude from (needs >= {min_rate_hz:g} Hz)")
+    from .smoothing import AUTOPILOT, SMOOTHED, against_smoothed, autopilot_run, smoothed_run
+
     runs = {s.label: run_estimator(prep, s, init) for s in chosen}
+    smoothed_label = ""
+    if smooth:
+        spec = next((s for s in chosen if s.name == "eskf"), EstimatorSpec("eskf"))
+        smoothed_label = spec.label + SMOOTHED
+        runs[smoothed_label] = smoothed_run(prep, spec, init)
     scores = {label: score(prep, r) for label, r in runs.items()}
-    return Evaluation(prep, runs, scores)
+    own = autopilot_run(prep)
+    if own is not None:
+        scores[AUTOPILOT] = score(prep, own, six_d=False)
+    vs_smoothed = {}
+    if smooth and (rec.reference is None or rec.reference.kind != "truth"):
+        vs_smoothed = against_smoothed(prep, runs, runs[smoothed_label])
+    return Evaluation(prep, runs, scores, vs_smoothed=vs_smoothed,
+                      smoothed_label=smoothed_label)

@@ -45,14 +45,16 @@ def header_lines(ev: Evaluation) -> list[str]:
     return lines
 
 
-def table_lines(ev: Evaluation) -> list[str]:
+def table_lines(ev: Evaluation, scores: dict | None = None) -> list[str]:
+    """The scores table (default: against the file's reference)."""
     if ev.not_run:
         return [f"not scored: {ev.not_run}; estimators not run"]
-    labels = list(ev.scores)
+    scores = ev.scores if scores is None else scores
+    labels = list(scores)
     width = max(9, *(len(k) for k in labels)) if labels else 9
     lines = [f"{'estimator':<{width}}" + "".join(f"{h:>{CELL}}" for _, h, _, _ in COLUMNS)]
     notes: dict[tuple[str, str], list[str]] = {}  # (header, reason) -> estimators
-    for label, s in ev.scores.items():
+    for label, s in scores.items():
         cells = []
         for name, head, scale, fmt in COLUMNS:
             v = getattr(s, name)
@@ -87,7 +89,15 @@ def phase_lines(ev: Evaluation) -> list[str]:
     return lines
 
 
+def smoothed_lines(ev: Evaluation) -> list[str]:
+    """Without a truth: everything against the smoothed eskf, which is no truth."""
+    if not ev.vs_smoothed:
+        return []
+    return [f"against {ev.smoothed_label} (the best estimate this log allows, NOT truth):",
+            *table_lines(ev, ev.vs_smoothed)]
+
+
 def print_summary(ev: Evaluation, stream: TextIO | None = None) -> None:
     out = stream if stream is not None else sys.stdout
-    for line in header_lines(ev) + table_lines(ev) + phase_lines(ev):
+    for line in header_lines(ev) + table_lines(ev) + phase_lines(ev) + smoothed_lines(ev):
         print(line, file=out)

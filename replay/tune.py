@@ -16,12 +16,10 @@ import math
 import multiprocessing as mp
 import os
 import signal
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TextIO
 
 import numpy as np
 
@@ -30,6 +28,10 @@ from estimators import metrics
 from estimators.spec import EstimatorSpec
 
 from .evaluate import Prepared, is_six_d, run_estimator
+from .progress import Progress
+
+__all__ = ["ParamAxis", "Progress", "Sweep", "grid_points", "parse_param", "score_params",
+           "sweep"]
 
 
 @dataclass(frozen=True)
@@ -123,7 +125,9 @@ class Sweep:
                             self.heading[i].mean(), self.inclination[i].mean(),
                             *self.total[i]])
 
-    def write_json(self, path: str | Path) -> None:
+    def write_json(self, path: str | Path, extra: dict | None = None) -> None:
+        """The sweep as JSON; ``extra`` adds top-level keys (the cross-validation)."""
+
         def clean(x: float) -> float | None:
             return float(x) if math.isfinite(x) else None
 
@@ -141,6 +145,7 @@ class Sweep:
                         "total_deg": [clean(v) for v in self.total[i]],
                         "inclination_deg": [clean(v) for v in self.inclination[i]]}
                        for i, p in enumerate(self.points) if self.done[i]],
+            **(extra or {}),
         }
         Path(path).write_text(json.dumps(doc, indent=1), encoding="utf-8")
 
@@ -155,43 +160,44 @@ def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+def score_params(prep: Prepared, spec: EstimatorSpec, init: str) -> np.ndarray:
+    """[total, heading, inclination] RMSE [deg] of one parameter set on one prepared file
+    (NaN when the estimator refuses the values or never runs on a scored sample). The
+    one scoring rule of every sweep: local (:func:`sweep`) and on a cluster
+    (``replay.tune_tasks``)."""
+    out = np.full(3, np.nan)
+    try:
+        run = run_estimator(prep, spec, init)
+    except ValueError:  # e.g. a parameter value the estimator refuses
+        return out
+    keep = prep.scored & np.all(np.isfinite(run.q), axis=1)
+    if keep.any():
+        r = metrics.rms_errors(run.q[keep], prep.q_ref[keep])
+        out[:] = (r.total_deg, r.heading_deg, r.inclination_deg)
+    return out
+
+
 def _score_point(index_params: tuple[int, dict[str, float]]) -> tuple[int, np.ndarray]:
     """(index, [[total, heading, inclination] per file]) for one grid point."""
     index, params = index_params
     name, fixed, init = _TASK
-    out = np.full((len(_PREPARED), 3), np.nan)
     spec = EstimatorSpec(name, {**fixed, **params})
-    for k, prep in enumerate(_PREPARED):
-        try:
-            run = run_estimator(prep, spec, init)
-        except ValueError:  # e.g. a parameter value the estimator refuses
-            continue
-        keep = prep.scored & np.all(np.isfinite(run.q), axis=1)
-        if keep.any():
-            r = metrics.rms_errors(run.q[keep], prep.q_ref[keep])
-            out[k] = (r.total_deg, r.heading_deg, r.inclination_deg)
-    return index, out
+    return index, np.array([score_params(prep, spec, init) for prep in _PREPARED]
+                           ).reshape(len(_PREPARED), 3)
 
 
-class Progress:
-    """A one-line text progress bar on stderr (no dependency, redraws in place)."""
-
-    def __init__(self, total: int, stream: TextIO | None = None, width: int = 30) -> None:
-        self.total, self.done, self.width = total, 0, width
-        self.stream = stream if stream is not None else sys.stderr
-        self.started = time.perf_counter()
-
-    def advance(self, n: int = 1) -> None:
-        self.done += n
-        frac = self.done / max(self.total, 1)
-        elapsed = time.perf_counter() - self.started
-        eta = elapsed / frac - elapsed if frac > 0 else float("nan")
-        bar = "#" * int(frac * self.width)
-        self.stream.write(f"\r[{bar:<{self.width}}] {self.done}/{self.total} "
-                          f"{elapsed:6.1f} s, eta {eta:5.1f} s")
-        if self.done >= self.total:
-            self.stream.write("\n")
-        self.stream.flush()
+def grid_points(estimator: str, axes: Sequence[ParamAxis], fixed: dict[str, float]
+                ) -> tuple[dict[str, float], ...]:
+    """Every combination of the swept values, in the axes' order (the last varies
+    fastest); unknown names and a parameter swept twice fail here, before any work."""
+    cls = estimators.estimator_class(estimator)
+    names = [a.name for a in axes]
+    if len(set(names)) != len(names):
+        raise ValueError(f"a parameter is swept twice: {names}")
+    cls.make_params(**{n: float(a.values[0]) for n, a in zip(names, axes, strict=True)},
+                    **fixed)
+    return tuple(dict(zip(names, map(float, combo), strict=True))
+                 for combo in itertools.product(*(a.values for a in axes)))
 
 
 def sweep(prepared: Sequence[Prepared], estimator: str, axes: Sequence[ParamAxis],
@@ -204,16 +210,9 @@ def sweep(prepared: Sequence[Prepared], estimator: str, axes: Sequence[ParamAxis
     """
     global _PREPARED, _TASK
     fixed = dict(fixed or {})
-    cls = estimators.estimator_class(estimator)
-    names = [a.name for a in axes]
-    if len(set(names)) != len(names):
-        raise ValueError(f"a parameter is swept twice: {names}")
-    cls.make_params(**{n: float(a.values[0]) for n, a in zip(names, axes, strict=True)},
-                    **fixed)  # unknown names fail here, before any work
+    points = grid_points(estimator, axes, fixed)
     if not prepared or not all(p.q_ref is not None and p.scored.any() for p in prepared):
         raise ValueError("every file needs a reference attitude to tune against")
-    points = tuple(dict(zip(names, map(float, combo), strict=True))
-                   for combo in itertools.product(*(a.values for a in axes)))
     _PREPARED, _TASK = list(prepared), (estimator, fixed, init)
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(points)))
     bar = Progress(len(points)) if progress else None

@@ -25,7 +25,8 @@ def test_replay_json_per_spec(data_dir, tmp_path, capsys):
     assert code == 0
     doc = json.loads(out.read_text())
     assert doc["file"] == str(path) and doc["reference"] == "truth"
-    assert set(doc["estimators"]) == {"mahony:kp=0.5,ki=0.01", "quaternion"}
+    # beside the estimators, the autopilot's own attitude against the truth
+    assert set(doc["estimators"]) == {"mahony:kp=0.5,ki=0.01", "quaternion", "autopilot"}
     for scores in doc["estimators"].values():
         for key in ("total_deg", "heading_deg", "inclination_deg", "lag_s"):
             assert key in scores

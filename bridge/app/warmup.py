@@ -43,13 +43,24 @@ def warm_up_emulator() -> None:
     simulate(EmulatorConfig(profile="static", duration_s=0.05, seed=0))
 
 
+def warm_up_smoother() -> None:
+    """Compile the eskf's smoother (``replay --smooth``): its tapped forward driver and
+    the backward pass."""
+    import estimators
+
+    acc, mag = np.tile([0.0, 0.0, -9.8], (40, 1)), np.tile([0.2, 0.0, 0.4], (40, 1))
+    estimators.smooth("eskf", np.zeros((40, 3)), acc, mag, rate_hz=100.0)
+
+
 def warm_up_all(specs: Iterable[EstimatorSpec], progress: Progress | None = None,
                 emulator: bool = False) -> dict[str, float]:
-    """Compile each estimator (and optionally the emulator); seconds taken per item."""
+    """Compile each estimator (and optionally the emulator and the smoother); seconds
+    taken per item."""
     jobs: list[tuple[str, Callable[[], None]]] = [
         (spec.label, lambda s=spec: warm_up(s)) for spec in specs]
     if emulator:
         jobs.append(("emulator", warm_up_emulator))
+        jobs.append(("smoother", warm_up_smoother))
     taken = {}
     for name, job in jobs:
         if progress is not None:
@@ -101,7 +112,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "run starts at once. install.sh runs it; run it again after an "
                     "upgrade or with another NUMBA_CACHE_DIR.")
     p.add_argument("names", nargs="*", metavar="ESTIMATOR",
-                   help="only these estimators (default: all, and the emulator)")
+                   help="only these estimators (default: all, the emulator and the "
+                        "smoother)")
     p.set_defaults(func=_run)
 
 
@@ -110,7 +122,7 @@ def _run(args: argparse.Namespace) -> int:
 
     specs = [EstimatorSpec.parse(n) for n in (args.names or estimators.names())]
     progress = LineProgress("attitude-bridge warmup: compiling",
-                            len(specs) + (0 if args.names else 1))
+                            len(specs) + (0 if args.names else 2))
     start = time.perf_counter()
     try:
         warm_up_all(specs, progress, emulator=not args.names)

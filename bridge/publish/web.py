@@ -86,6 +86,8 @@ class WebStats:
     incoming_ignored: int = 0
     tick_ms_max: float = 0.0  # the longest snapshot + JSON: the event loop is busy that
     tick_ms_mean: float = 0.0  # long, an IMU packet arriving meanwhile waits
+    work_ms: float = 0.0  # all of the view's time on the event loop (frames and sends):
+    # what it takes from the MAVLink path, whatever else the machine is doing
 
 
 class WebView:
@@ -148,12 +150,15 @@ class WebView:
         st = self.stats
         st.tick_ms_max = max(st.tick_ms_max, round(ms, 3))
         st.tick_ms_mean = round(ms if st.frames == 1 else 0.95 * st.tick_ms_mean + 0.05 * ms, 3)
+        st.work_ms = round(st.work_ms + ms, 3)
 
     def _send(self, viewer: _ViewSocket, text: str) -> None:
+        t0 = time.perf_counter()
         if viewer.send(text):
             self.stats.frames_sent += 1
         else:
             self.stats.frames_dropped += 1
+        self.stats.work_ms = round(self.stats.work_ms + (time.perf_counter() - t0) * 1e3, 3)
 
     def hello(self) -> str:
         """What a browser is told first: the settings of the view and its history."""

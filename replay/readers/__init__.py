@@ -15,6 +15,8 @@ FORMATS: dict[str, Callable[..., Recording]] = {
     "csv": csv.read,
 }
 _SUFFIXES = {".ulg": "ulog", ".ulog": "ulog", ".tlog": "tlog", ".npz": "npz", ".csv": "csv"}
+#: File name endings that name a log format: what a folder given to replay / tune yields.
+LOG_SUFFIXES = frozenset(_SUFFIXES)
 ULOG_MAGIC = b"ULog\x01\x12\x35"
 ZIP_MAGIC = b"PK\x03\x04"
 MAVLINK_STX = (0xFE, 0xFD)  # MAVLink 1 / 2 start bytes, after a tlog's 8-byte time stamp

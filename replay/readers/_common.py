@@ -50,6 +50,13 @@ def require_imu(n: int, path: object, what: str, damage: str = "") -> None:
                                + (f"; {damage}" if damage else ""))
 
 
+def other_autopilot(found: Mapping[str, Reference | None], chosen: Reference | None
+                    ) -> Reference | None:
+    """The autopilot's attitude when the chosen reference is another kind (else None)."""
+    own = found.get("autopilot")
+    return own if own is not None and own is not chosen else None
+
+
 def pick_reference(found: Mapping[str, Reference | None], wanted: str
                    ) -> tuple[Reference | None, tuple[str, ...]]:
     """The reference asked for and the kinds the file has (in order of preference).

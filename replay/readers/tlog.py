@@ -32,7 +32,7 @@ from estimators import quat as Q
 from ..board import choose_board, magnitude_warning
 from ..dataset import Position, Recording, Reference, ReplayInputError, StateEvent
 from ..timebase import sample_and_hold
-from ._common import clean_stream, make_reference, pick_reference, require_imu
+from ._common import clean_stream, make_reference, other_autopilot, pick_reference, require_imu
 from .velocity import VelocityRows, place_velocity
 
 os.environ["MAVLINK20"] = "1"
@@ -95,9 +95,9 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
                                + (f"; {damage}" if damage else ""))
     in_session = {k: [m for m in v if window[0] <= m._timestamp <= window[1]]
                   for k, v in messages.items()}
-    ref, references = pick_reference({"truth": _truth(in_session, src, clock),
-                                      "autopilot": _autopilot(in_session, src, clock)},
-                                     reference)
+    found = {"truth": _truth(in_session, src, clock),
+             "autopilot": _autopilot(in_session, src, clock)}
+    ref, references = pick_reference(found, reference)
     when, when_source = _date(in_session, src)
     velocity = place_velocity(_velocity_rows(in_session, src, clock), t)
     beats = [m.type for m in _same_component(messages.get("HEARTBEAT", []), src)]
@@ -114,7 +114,7 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
                      mav_type=Counter(beats).most_common(1)[0][0] if beats else None,
                      mav_type_source="HEARTBEAT" if beats else "",
                      state_events=events, state_events_source=events_source,
-                     references=references)
+                     references=references, autopilot=other_autopilot(found, ref))
 
 
 def _state_events(messages: dict[str, list], src: tuple, clock: BoardClock

@@ -23,6 +23,7 @@ from ..timebase import sample_and_hold
 from ._common import (
     clean_stream,
     make_reference,
+    other_autopilot,
     pick_reference,
     require_imu,
     trim_before_first_mag,
@@ -76,7 +77,8 @@ def read(path: Path, reference: str = "auto") -> Recording:
                      "magnetometer_ga, sensor_mag)")
     require_imu(len(t), path, "sensor_combined", damage)
 
-    ref, references = pick_reference(_references(topics, origin), reference)
+    found = _references(topics, origin)
+    ref, references = pick_reference(found, reference)
     warning = magnitude_warning(acc, "sensor_combined")
     when, when_source = _date(topics)
     events, events_source = _state_events(topics, origin)
@@ -94,7 +96,7 @@ def read(path: Path, reference: str = "auto") -> Recording:
                      mav_type_source="parameter MAV_TYPE" if "MAV_TYPE" in
                      ulog.initial_parameters else "",
                      state_events=events, state_events_source=events_source,
-                     references=references)
+                     references=references, autopilot=other_autopilot(found, ref))
 
 
 def _bytes_after_last_message(path: Path) -> int:

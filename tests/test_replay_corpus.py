@@ -1,0 +1,366 @@
+"""Corpus replay and cross-validated tuning (issue 21, parts 2 and 3), end to end.
+
+Real files in a temporary folder: synthetic CSV recordings with truth (and one without),
+a real PX4 ULog from the development data (a quadrotor with flight phases), a corrupt
+.tlog (random bytes) and a truncated .ulg. They go through the real command line
+(``bridge.app.cli.main``) on one core, on two local processes and on a real two-process
+``dask.distributed.LocalCluster``; the summaries must be identical, the broken logs
+reported with the single-file replay's reason, the others scored.
+
+The tests that fork worker processes or start the cluster share one xdist worker (group
+"dask") and run in file order there: the forking ones first, before the cluster's
+threads exist in the process.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bridge.app.cli import main
+from replay import cluster
+from replay.crossval import cross_validate
+from replay.dataset import ReplayInputError
+from replay.logpaths import expand, is_corpus
+from replay.parallel import run
+from replay.progress import Progress
+from replay.readers import csv as csv_format
+from replay.synthetic import SyntheticConfig, generate
+from replay.tune import ParamAxis, Sweep
+
+ESTIMATORS = ["-e", "mahony", "-e", "eskf"]
+PX4_LOG = "pyulog_sample_px4_events.ulg"
+
+
+def write_csv(path: Path, cfg: SyntheticConfig, truth: bool = True) -> Path:
+    rec = generate(cfg)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    csv_format.write(path, rec.t, rec.gyr, rec.acc, rec.mag,
+                     rec.reference.q if truth else None)
+    return path
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory, data_dir) -> Path:
+    root = tmp_path_factory.mktemp("corpus")
+    write_csv(root / "bench" / "a.csv", SyntheticConfig(duration_s=4.0, rate_hz=100.0, seed=1))
+    write_csv(root / "bench" / "b.csv", SyntheticConfig(duration_s=4.0, rate_hz=100.0, seed=2,
+                                                        linear_acc=3.0))
+    write_csv(root / "bench" / "no_truth.csv",
+              SyntheticConfig(duration_s=2.0, rate_hz=100.0, seed=3), truth=False)
+    (root / "px4").mkdir()
+    shutil.copy(data_dir / "logs" / PX4_LOG, root / "px4" / "events.ulg")
+    (root / "bad").mkdir()
+    (root / "bad" / "corrupt.tlog").write_bytes(np.random.default_rng(0).bytes(4000))
+    (root / "bad" / "truncated.ulg").write_bytes(
+        (data_dir / "logs" / PX4_LOG).read_bytes()[:20000])
+    (root / "bench" / "notes.txt").write_text("not a log: the folder scan skips it\n")
+    return root
+
+
+@pytest.fixture(scope="module")
+def one_core(corpus, tmp_path_factory) -> tuple[dict, str, Path]:
+    """The reference run: --jobs 1, with every output (JSON doc, stdout, folder)."""
+    out = tmp_path_factory.mktemp("one_core")
+    code, stdout, _ = cli(["replay", str(corpus), *ESTIMATORS, "--jobs", "1", "-q",
+                           "--json", str(out / "s.json"), "--csv", str(out / "s.csv"),
+                           "--report", str(out / "s.html")])
+    assert code == 0
+    return json.loads((out / "s.json").read_text()), stdout, out
+
+
+def cli(argv: list[str]) -> tuple[int, str, str]:
+    """Run the real entry point in this process; (exit code, stdout, stderr)."""
+    import contextlib
+    import io
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(argv)
+    return code, out.getvalue(), err.getvalue()
+
+
+def entry(doc: dict, name: str) -> dict:
+    return next(e for e in doc["per_log"] if e["file"].endswith(name))
+
+
+# --- paths ---------------------------------------------------------------------------
+
+
+def test_paths_folders_patterns_duplicates(corpus):
+    logs = expand([corpus])
+    names = [p.relative_to(corpus).as_posix() for p in logs]
+    assert names == ["bad/corrupt.tlog", "bad/truncated.ulg", "bench/a.csv", "bench/b.csv",
+                     "bench/no_truth.csv", "px4/events.ulg"]  # sorted, notes.txt skipped
+    again = expand([corpus / "bench" / "b.csv", str(corpus / "bench" / "*.csv"),
+                    corpus / "bench" / "a.csv"])
+    assert [p.name for p in again] == ["a.csv", "b.csv", "no_truth.csv"]  # each once
+    with pytest.raises(ReplayInputError, match="no file matches"):
+        expand([str(corpus / "*.nothing")])
+    (corpus.parent / "empty").mkdir(exist_ok=True)
+    with pytest.raises(ReplayInputError, match="no logs in this folder"):
+        expand([corpus.parent / "empty"])
+    assert not is_corpus([corpus / "bench" / "a.csv"]) and not is_corpus(["missing.ulg"])
+    assert is_corpus([corpus]) and is_corpus([str(corpus / "*" / "*.csv")])
+    assert is_corpus([corpus / "bench" / "a.csv", corpus / "bench" / "b.csv"])
+
+
+# --- the corpus summary on one core ---------------------------------------------------
+
+
+def test_corpus_reports_broken_logs_with_the_single_file_reason(one_core, corpus):
+    doc, stdout, _ = one_core
+    assert (doc["logs"], doc["scored"], doc["not_scored"], doc["failed"]) == (6, 3, 1, 2)
+    for name in ("corrupt.tlog", "truncated.ulg"):
+        e = entry(doc, name)
+        code, _, err = cli(["replay", e["file"]])  # the same log alone
+        assert code == 2 and e["status"] == "failed"
+        assert err.strip() == f"attitude-bridge replay: error: {e['reason']}"
+        assert e["reason"] in stdout
+    assert "no IMU samples found" in entry(doc, "corrupt.tlog")["reason"]
+    no_truth = entry(doc, "no_truth.csv")
+    assert no_truth["status"] == "not scored" and "no reference" in no_truth["reason"]
+    assert stdout.startswith("corpus: 6 logs: 3 scored, 1 not scored, 2 failed")
+
+
+def test_corpus_scores_are_the_single_file_replays(one_core, tmp_path):
+    doc, _, _ = one_core
+    a = entry(doc, "a.csv")
+    out = tmp_path / "a.json"
+    assert cli(["replay", a["file"], *ESTIMATORS, "--json", str(out)])[0] == 0
+    single = json.loads(out.read_text())["estimators"]
+    for label in ("mahony", "eskf"):
+        for key in ("total_deg", "heading_deg", "inclination_deg", "phases"):
+            assert a["estimators"][label][key] == single[label][key]
+    assert "run_s" not in a["estimators"]["mahony"]  # wall time: not part of the summary
+
+
+def test_aggregates_per_estimator_vehicle_and_phase(one_core):
+    doc, stdout, _ = one_core
+    scored = [e for e in doc["per_log"] if e["status"] == "scored"]  # ordered by path
+    totals = [e["estimators"]["mahony"]["total_deg"] for e in scored]
+    agg = doc["by_estimator"]["mahony"]["score"]
+    assert agg["logs"] == 3 and agg["mean_deg"] == float(np.mean(totals))
+    assert agg["median_deg"] == float(np.median(totals)) and agg["worst_deg"] == max(totals)
+    assert agg["worst_file"] == scored[int(np.argmax(totals))]["file"]
+    assert set(doc["by_vehicle"]) == {"quadrotor", "unknown"}
+    assert doc["by_vehicle"]["quadrotor"]["logs"] == 1
+    assert doc["by_vehicle"]["unknown"]["estimators"]["eskf"]["logs"] == 2
+    px4 = entry(doc, "events.ulg")["estimators"]["eskf"]["phases"]
+    assert {"takeoff", "flight"} <= set(px4) <= set(doc["by_phase"])
+    assert doc["by_phase"]["flight"]["estimators"]["eskf"]["mean_deg"] == px4["flight"]["total_deg"]
+    ranks = [np.mean([e["estimators"][k]["total_deg"] for k in ("mahony", "eskf")])
+             for e in scored]
+    assert doc["worst_first"][:3] == [scored[i]["file"] for i in np.argsort(ranks)[::-1]]
+    assert "by vehicle type" in stdout and "by flight phase" in stdout
+
+
+def test_corpus_csv_and_report(one_core):
+    doc, _, out = one_core
+    rows = (out / "s.csv").read_text().splitlines()
+    assert rows[0].startswith("file,status,reason,format,vehicle")
+    assert len(rows) == 1 + 6 and rows[1].split(",")[0] == doc["worst_first"][0]
+    page = (out / "s.html").read_text()
+    assert "attitude-bridge corpus replay" in page and "Bokeh" in page
+    assert "corrupt.tlog" in page and "By flight phase" in page
+
+
+def test_one_file_is_the_single_file_replay(corpus):
+    path = corpus / "bench" / "a.csv"
+    code, stdout, _ = cli(["replay", str(path), "-e", "mahony"])
+    assert code == 0 and stdout.startswith(f"{path}: csv, IMU") and "corpus:" not in stdout
+
+
+def test_nothing_scored_exits_2(corpus):
+    code, stdout, err = cli(["replay", str(corpus / "bad"), "-q", "-e", "mahony", "--jobs", "1"])
+    assert code == 2 and "2 failed" in stdout
+    assert err.strip().splitlines()[-1] == ("attitude-bridge replay: error: no log was scored "
+                                            "(2 failed, 0 not scored)")
+
+
+def test_single_file_options_are_refused_for_a_corpus(corpus, tmp_path):
+    code, _, err = cli(["replay", str(corpus), "--png", str(tmp_path)])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "--png" in err
+
+
+def test_progress_bar_counts_failures():
+    import io
+
+    out = io.StringIO()
+    bar = Progress(3, stream=out, count_failed=True)
+    bar.advance()
+    bar.advance(failed=True)
+    bar.advance()
+    assert " 3/3 done, 1 failed, " in out.getvalue() and out.getvalue().endswith("\n")
+
+
+# --- scheduler errors (no cluster needed) ---------------------------------------------
+
+
+def test_bad_scheduler_addresses_are_one_line_errors(corpus, monkeypatch):
+    for bad in ("foo", "http://127.0.0.1:8786", "tcp://127.0.0.1"):
+        code, _, err = cli(["replay", str(corpus), "--scheduler", bad])
+        assert code == 2 and err.count("\n") == 1 and "expected a Dask scheduler" in err
+    with socket.socket() as s:  # a port where nothing listens
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    monkeypatch.setattr(cluster, "CONNECT_TIMEOUT_S", 1.0)
+    began = time.perf_counter()
+    code, _, err = cli(["replay", str(corpus), "--scheduler", f"tcp://127.0.0.1:{port}"])
+    assert code == 2 and err.count("\n") == 1 and "cannot connect within 1 s" in err
+    assert time.perf_counter() - began < 5.0
+    monkeypatch.setattr(cluster.importlib.util, "find_spec", lambda name: None)
+    code, _, err = cli(["tune", str(corpus), "-e", "mahony", "-p", "kp=1",
+                        "--scheduler", "tcp://127.0.0.1:8786"])
+    assert code == 2 and "pip install 'attitude-bridge[cluster]'" in err
+
+
+# --- cross-validation ------------------------------------------------------------------
+
+
+def test_cross_validation_arithmetic_on_a_hand_made_sweep():
+    """Three logs, three points. In-sample (all logs) the middle point wins; without
+    log c, point 0 wins, and it is much worse on c: the held-out choice differs."""
+    total = np.array([[1.0, 1.0, 9.0],  # point 0: good on a, b; bad on c
+                      [2.0, 2.0, 2.0],  # point 1: mean 2.0, the in-sample best
+                      [5.0, 5.0, 1.0]])
+    sw = Sweep("mahony", (ParamAxis("kp", np.array([0.1, 1.0, 10.0])),), {"ki": 0.0},
+               ("x/a.csv", "x/b.csv", "y/c.csv"), ({"kp": 0.1}, {"kp": 1.0}, {"kp": 10.0}),
+               total, total * 0, total * 0.5, 0.0)
+    cv = cross_validate(sw)
+    assert cv.best == {"ki": 0.0, "kp": 1.0}
+    assert [h.chosen for h in cv.logs] == [{"kp": 1.0}, {"kp": 1.0}, {"kp": 0.1}]
+    # a held out: b, c -> means (5, 2, 3) -> point 1; c held out: a, b -> point 0
+    assert [h.cross_validated_deg for h in cv.logs] == [2.0, 2.0, 9.0]
+    assert [h.in_sample_deg for h in cv.logs] == [2.0, 2.0, 2.0]
+    assert cv.cross_validated_mean_deg == pytest.approx(13 / 3) and cv.worst.file == "y/c.csv"
+    by_folder = cross_validate(sw, "folder")  # x out: c alone -> point 2; y out: point 0
+    assert [h.cross_validated_deg for h in by_folder.logs] == [5.0, 5.0, 9.0]
+    assert "cross-validated mean 4.333 deg, worst 9.000 (y/c.csv)" in "\n".join(cv.lines())
+
+
+@pytest.fixture(scope="module")
+def tune_logs(tmp_path_factory) -> Path:
+    """Two logs shaken hard (linear acceleration: a small kp is best) and one with a
+    large gyro bias and a quiet accelerometer (a large kp is best), in two folders."""
+    root = tmp_path_factory.mktemp("tune")
+    for name, cfg in (("shaken/s1.csv", SyntheticConfig(duration_s=12.0, rate_hz=100.0, seed=1,
+                                                         linear_acc=6.0, gyro_bias=(0, 0, 0))),
+                      ("shaken/s2.csv", SyntheticConfig(duration_s=12.0, rate_hz=100.0, seed=2,
+                                                         linear_acc=6.0, gyro_bias=(0, 0, 0))),
+                      ("biased/g.csv", SyntheticConfig(duration_s=12.0, rate_hz=100.0, seed=3,
+                                                        gyro_bias=(0.2, -0.2, 0.1),
+                                                        acc_noise=0.05))):
+        write_csv(root / name, cfg)
+    return root
+
+
+TUNE = ["-e", "mahony", "-p", "kp=0.05:3:8", "--set", "ki=0", "-q"]
+
+
+def hand_cross_validation(doc: dict) -> list[tuple[dict, float, float]]:
+    """(chosen point, held-out score, in-sample score) per log, from the sweep's JSON."""
+    matrix = np.array([p["total_deg"] for p in doc["points"]])  # (points, logs)
+    params = [p["params"] for p in doc["points"]]
+    best = min(range(len(params)), key=lambda i: sum(matrix[i]) / matrix.shape[1])
+    out = []
+    for f in range(matrix.shape[1]):
+        others = [k for k in range(matrix.shape[1]) if k != f]
+        p = min(range(len(params)), key=lambda i: sum(matrix[i, others]) / len(others))
+        out.append((params[p], matrix[p, f], matrix[best, f]))
+    return out
+
+
+def test_tune_cross_validate_matches_a_hand_computation(tune_logs, tmp_path):
+    out = tmp_path / "sweep.json"
+    code, stdout, _ = cli(["tune", str(tune_logs), *TUNE, "--jobs", "1", "--cross-validate",
+                           "--out", str(out)])
+    assert code == 0
+    doc = json.loads(out.read_text())
+    cv = doc["cross_validation"]
+    assert [h["file"] for h in cv["logs"]] == doc["files"]
+    for h, (chosen, held_out, in_sample) in zip(cv["logs"], hand_cross_validation(doc),
+                                                strict=True):
+        assert h["chosen"] == chosen
+        assert h["cross_validated_deg"] == pytest.approx(held_out, rel=1e-12)
+        assert h["in_sample_deg"] == pytest.approx(in_sample, rel=1e-12)
+    biased = next(h for h in cv["logs"] if h["file"].endswith("g.csv"))
+    assert biased["chosen"]["kp"] != cv["in_sample_best"]["kp"]  # the constructed case
+    assert biased["cross_validated_deg"] > biased["in_sample_deg"]
+    assert cv["cross_validated_worst_file"] == biased["file"]
+    assert cv["cross_validated_mean_deg"] == pytest.approx(
+        np.mean([h["cross_validated_deg"] for h in cv["logs"]]), rel=1e-12)
+    assert "cross-validated mean" in stdout and "unseen" not in stdout
+
+
+def test_cross_validate_needs_two_groups(tune_logs):
+    code, _, err = cli(["tune", str(tune_logs / "shaken"), *TUNE, "--cross-validate",
+                        "--group-by", "folder"])
+    assert code == 2 and "at least two folders" in err and err.count("\n") == 1
+
+
+# --- processes and the cluster (one xdist worker, in this order) ------------------------
+
+
+def _double_or_die(x: int) -> int:
+    if x == 3:
+        os._exit(1)  # the worker process dies, as if killed by the OOM killer
+    return 2 * x
+
+
+@pytest.mark.xdist_group("dask")
+def test_a_dead_worker_costs_only_its_task():
+    done = []
+    out = run(_double_or_die, [(x,) for x in range(6)], jobs=2,
+              on_crash=lambda task, why: f"crashed: {why}",
+              on_done=lambda i, r: done.append(i))
+    assert out.results[:3] == [0, 2, 4] and out.results[4:] == [8, 10]
+    assert out.results[3].startswith("crashed: worker process died")
+    assert sorted(done) == list(range(6))
+
+
+@pytest.mark.xdist_group("dask")
+def test_two_local_processes_give_the_one_core_summary(corpus, one_core, tmp_path):
+    doc, stdout, _ = one_core
+    code, stdout2, _ = cli(["replay", str(corpus), *ESTIMATORS, "--jobs", "2", "-q",
+                            "--json", str(tmp_path / "s.json")])
+    assert code == 0 and json.loads((tmp_path / "s.json").read_text()) == doc
+    assert stdout2.split("json:")[0] == stdout.split("json:")[0]
+
+
+@pytest.fixture(scope="module")
+def dask_cluster():
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=":0") as c:
+        yield c.scheduler_address
+
+
+@pytest.mark.xdist_group("dask")
+def test_dask_scheduler_gives_the_one_core_summary(corpus, one_core, dask_cluster, tmp_path):
+    doc, _, _ = one_core
+    code, stdout, err = cli(["replay", str(corpus), *ESTIMATORS, "--scheduler", dask_cluster,
+                             "--json", str(tmp_path / "s.json")])
+    assert code == 0 and json.loads((tmp_path / "s.json").read_text()) == doc
+    assert "6/6 done, 2 failed" in err  # the progress bar (not -q)
+    assert "corrupt.tlog" in stdout
+
+
+@pytest.mark.xdist_group("dask")
+def test_dask_tune_cross_validated_equals_local(tune_logs, dask_cluster, tmp_path):
+    docs = []
+    for where in (["--jobs", "1"], ["--scheduler", dask_cluster]):
+        out = tmp_path / f"{where[0]}.json"
+        assert cli(["tune", str(tune_logs), *TUNE, *where, "--cross-validate",
+                    "--out", str(out)])[0] == 0
+        doc = json.loads(out.read_text())
+        doc.pop("seconds")
+        docs.append(doc)
+    assert docs[0] == docs[1] and docs[0]["cross_validation"]["logs"]

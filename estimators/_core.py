@@ -470,6 +470,27 @@ def _make_process(step, takes_velocity: bool):
     return process
 
 
+def _make_batch_row(process):
+    """Sample ``i`` of a batch through ``process`` into row ``i`` of Q, B and F, inlined
+    into every batch driver. A one-row ``dts``, ``M`` (no magnetometer), ``V`` (no
+    velocity) or ``V_AGE`` holds for every sample."""
+
+    @njit(inline="always")
+    def batch_row(state, params, common, G, A, M, has_mag, dts, counters,
+                  Q, B, F, V, V_AGE, i) -> None:
+        dt = dts[0] if dts.shape[0] == 1 else dts[i]
+        j = i if has_mag else 0
+        k = i if V.shape[0] == G.shape[0] else 0
+        age = V_AGE[0] if V_AGE.shape[0] == 1 else V_AGE[i]
+        F[i] = process(state, params, common, G[i, 0], G[i, 1], G[i, 2],
+                       A[i, 0], A[i, 1], A[i, 2], M[j, 0], M[j, 1], M[j, 2],
+                       has_mag, dt, counters, V[k, 0], V[k, 1], V[k, 2], age)
+        write_output_row(state, common, Q, i)
+        B[i, 0], B[i, 1], B[i, 2] = state[B0], state[B0 + 1], state[B0 + 2]
+
+    return batch_row
+
+
 def _make_drivers(process, step, takes_velocity: bool):
     """(update_one, run_batch) around one estimator's ``process``."""
 
@@ -492,21 +513,13 @@ def _make_drivers(process, step, takes_velocity: bool):
         write_output(state, common, ws[n_end:n_end + W_OUT])
         return flags
 
+    batch_row = _make_batch_row(process)
+
     def run_batch(state, params, common, G, A, M, has_mag, dts, counters,
                   Q, B, F, V, V_AGE) -> None:
-        single_dt = dts.shape[0] == 1
-        has_vel = V.shape[0] == G.shape[0]
-        single_age = V_AGE.shape[0] == 1
         for i in range(G.shape[0]):
-            dt = dts[0] if single_dt else dts[i]
-            j = i if has_mag else 0
-            k = i if has_vel else 0
-            age = V_AGE[0] if single_age else V_AGE[i]
-            F[i] = process(state, params, common, G[i, 0], G[i, 1], G[i, 2],
-                           A[i, 0], A[i, 1], A[i, 2], M[j, 0], M[j, 1], M[j, 2],
-                           has_mag, dt, counters, V[k, 0], V[k, 1], V[k, 2], age)
-            write_output_row(state, common, Q, i)
-            B[i, 0], B[i, 1], B[i, 2] = state[B0], state[B0 + 1], state[B0 + 2]
+            batch_row(state, params, common, G, A, M, has_mag, dts, counters,
+                      Q, B, F, V, V_AGE, i)
 
     variant = f"takes_velocity={takes_velocity}"
     return (_cached_njit(update_one, step, variant), _cached_njit(run_batch, step, variant))
@@ -523,23 +536,13 @@ def make_tapped_driver(step, tap_at: int, tap_size: int):
     and the sample index into ``AT[n + k]`` and returns the new count, which goes past
     ``TAP.shape[0]`` (without copying) when TAP is too small.
     """
-    process = _make_process(step, True)
+    batch_row = _make_batch_row(_make_process(step, True))
 
     def run_tapped(state, params, common, G, A, M, has_mag, dts, counters,
                    Q, B, F, V, V_AGE, TAP, AT, n, offset) -> int:
-        single_dt = dts.shape[0] == 1
-        has_vel = V.shape[0] == G.shape[0]
-        single_age = V_AGE.shape[0] == 1
         for i in range(G.shape[0]):
-            dt = dts[0] if single_dt else dts[i]
-            j = i if has_mag else 0
-            k = i if has_vel else 0
-            age = V_AGE[0] if single_age else V_AGE[i]
-            F[i] = process(state, params, common, G[i, 0], G[i, 1], G[i, 2],
-                           A[i, 0], A[i, 1], A[i, 2], M[j, 0], M[j, 1], M[j, 2],
-                           has_mag, dt, counters, V[k, 0], V[k, 1], V[k, 2], age)
-            write_output_row(state, common, Q, i)
-            B[i, 0], B[i, 1], B[i, 2] = state[B0], state[B0 + 1], state[B0 + 2]
+            batch_row(state, params, common, G, A, M, has_mag, dts, counters,
+                      Q, B, F, V, V_AGE, i)
             if state[tap_at] > 0.0:
                 if n < TAP.shape[0]:
                     for c in range(tap_size):

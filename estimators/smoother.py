@@ -98,9 +98,9 @@ def smooth(name: str, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None =
     V = np.full((1, 3), np.nan) if vel is None else np.ascontiguousarray(vel, dtype=np.float64)
     if vel is not None and V.shape != G.shape:
         raise ValueError(f"vel must be (N, 3) like gyr, got {V.shape}")
-    probe = create(name, rate_hz=rate_hz, world=world, q0=q0, **params)
-    dts = probe._per_sample("dt", 1.0 / rate_hz if dt is None else dt, n)
-    ages = probe._per_sample("vel_age", 0.0 if vel_age is None else vel_age, n)
+    est = create(name, rate_hz=rate_hz, world=world, q0=q0, **params)
+    dts = est._per_sample("dt", 1.0 / rate_hz if dt is None else dt, n)
+    ages = est._per_sample("vel_age", 0.0 if vel_age is None else vel_age, n)
     code = np.full(n, 2, dtype=np.int8)
     if airborne is not None:
         air = np.asarray(airborne, dtype=np.float64)
@@ -109,9 +109,8 @@ def smooth(name: str, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None =
         code = np.where(np.isnan(air), 2, air != 0.0).astype(np.int8)
     cuts = [0, *(np.flatnonzero(np.diff(code)) + 1).tolist(), n] if n else [0]
     total_s = float(np.sum(dts) if dts.shape[0] == n else dts[0] * n)
-    capacity = min(n, int(total_s / probe.params.update_period * 1.02) + 16)
+    capacity = min(n, int(total_s / est.params.update_period * 1.02) + 16)
     while True:
-        est = create(name, rate_hz=rate_hz, world=world, q0=q0, **params)
         q, b, f = np.empty((n, 4)), np.empty((n, 3)), np.zeros(n, dtype=np.uint8)
         tap = np.empty((capacity, eskf.TAP_SIZE))
         at = np.empty(capacity, dtype=np.int64)
@@ -119,6 +118,7 @@ def smooth(name: str, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None =
         if k <= capacity:
             break
         capacity = k  # more Kalman steps than the time says (uneven steps): once more
+        est = create(name, rate_hz=rate_hz, world=world, q0=q0, **params)
     if n:
         est._last_flags = int(f[-1])
     online = BatchResult(q=q, bias=b, flags=f)

@@ -17,6 +17,22 @@ const PLOT_PERIOD_MS = 250;
 const view = { frames: 0, drawn: 0, hello: null, last: null, vehicles: {}, errors: [] };
 window.attitudeView = view;
 
+// BokehJS (about 1 MB) loads beside the live part, not before it: the indicators, the
+// facts and the error table show with the first frame, the plots when BokehJS is ready.
+// Scripts inserted with async = false run in the order they were inserted.
+const bokehReady = new Promise((resolve, reject) => {
+  const files = ["bokeh/bokeh.min.js", "bokeh/bokeh-api.min.js"];
+  files.forEach((src, i) => {
+    const script = document.createElement("script");
+    script.src = src;
+    script.async = false;
+    script.onerror = () => reject(new Error(`${src} did not load`));
+    if (i === files.length - 1) script.onload = () => resolve();
+    document.head.append(script);
+  });
+});
+bokehReady.catch((e) => view.errors.push(String(e)));
+
 function fmt(x, digits = 1) {
   return x === null || x === undefined || Number.isNaN(x) ? "–" : Number(x).toFixed(digits);
 }
@@ -131,7 +147,14 @@ class VehicleView {
     section.append(plots);
     document.getElementById("vehicles").append(section);
     this.section = section;
-    this.buildPlots(plots);
+    // Points wait here until the plots exist, and between plot redraws.
+    this.buffer = {};
+    for (const name of this.series) this.buffer[name] = { t: [], roll: [], pitch: [], yaw: [] };
+    this.errorBuffer = {};
+    for (const name of this.series.filter((n) => !REFERENCES[n] || n === "vehicle")) {
+      this.errorBuffer[name] = { t: [], err: [] };
+    }
+    bokehReady.then(() => this.buildPlots(plots), () => {});
   }
 
   buildPlots(target) {
@@ -140,8 +163,6 @@ class VehicleView {
                                            range_padding: 0 });
     this.sources = {};
     this.errorSources = {};
-    this.buffer = {};
-    this.errorBuffer = {};
     const figures = [];
     for (const axis of AXES) {
       const fig = P.figure({ height: 160, width: plotWidth(), x_range: xRange,
@@ -152,7 +173,6 @@ class VehicleView {
     this.series.forEach((name, i) => {
       const src = new Bokeh.ColumnDataSource({ data: { t: [], roll: [], pitch: [], yaw: [] } });
       this.sources[name] = src;
-      this.buffer[name] = { t: [], roll: [], pitch: [], yaw: [] };
       const ref = REFERENCES[name];
       const style = ref
         ? { line_color: ref.color, line_dash: ref.dash, line_width: ref.width,
@@ -173,7 +193,6 @@ class VehicleView {
     this.series.filter((n) => !REFERENCES[n] || n === "vehicle").forEach((name, i) => {
       const src = new Bokeh.ColumnDataSource({ data: { t: [], err: [] } });
       this.errorSources[name] = src;
-      this.errorBuffer[name] = { t: [], err: [] };
       const ref = REFERENCES[name];
       errFig.line({ field: "t" }, { field: "err" },
                   { source: src,
@@ -236,6 +255,7 @@ class VehicleView {
   }
 
   flush() {
+    if (!this.sources) return;  // BokehJS still loading: the buffers hold the points
     for (const [name, buf] of Object.entries(this.buffer)) {
       if (buf.t.length) {
         this.sources[name].stream(buf, this.rollover);
@@ -265,11 +285,14 @@ class VehicleView {
   keepErrors(st, t) {
     const truth = (st.compare || {}).truth;
     if (!truth || t === null || t === undefined) return;
-    for (const name of Object.keys(this.errorSources)) {
+    for (const [name, buf] of Object.entries(this.errorBuffer)) {
       const c = name === "vehicle" ? st.vehicle_vs_truth : truth[name];
       if (c && c.total_deg !== null && c.total_deg !== undefined) {
-        this.errorBuffer[name].t.push(t);
-        this.errorBuffer[name].err.push(c.total_deg);
+        buf.t.push(t);
+        buf.err.push(c.total_deg);
+        if (buf.t.length > this.rollover) {
+          for (const column of Object.values(buf)) column.splice(0, column.length - this.rollover);
+        }
       }
     }
   }

@@ -230,7 +230,7 @@ def _tune(args: argparse.Namespace) -> int:
     from .evaluate import prepare
     from .logpaths import expand
     from .tune import parse_param, sweep
-    from .tune_tasks import TuneInputs, sweep_on_cluster, tunable
+    from .tune_tasks import TuneInputs, no_log_left, sweep_on_cluster, tunable, unusable
 
     try:
         check_output_file(args.out, "--out")
@@ -247,12 +247,26 @@ def _tune(args: argparse.Namespace) -> int:
         if args.scheduler:
             inputs = TuneInputs(args.board, args.imu, args.reference, args.declination_deg,
                                 args.aid or "auto")
-            result = sweep_on_cluster(files, inputs, args.estimator, axes, fixed, args.init,
-                                      args.scheduler, progress=not args.quiet)
-            prepared = files
+            result, left_out = sweep_on_cluster(files, inputs, args.estimator, axes, fixed,
+                                                args.init, args.scheduler,
+                                                progress=not args.quiet)
+            prepared = result.files
         else:
-            prepared = [tunable(prepare(_load(path, args), declination_deg=args.declination_deg,
-                                        aid=args.aid or "auto"), path) for path in files]
+            prepared, left_out = [], []
+            for path in files:
+                try:
+                    prepared.append(tunable(prepare(_load(path, args),
+                                                    declination_deg=args.declination_deg,
+                                                    aid=args.aid or "auto"), path))
+                except (ReplayInputError, ValueError, OSError) as exc:
+                    left_out.append(unusable(str(path), exc))
+            if not prepared:
+                raise ReplayInputError(no_log_left(left_out))
+        for reason in left_out:  # a corpus goes on without its unusable logs, saying so
+            print(f"attitude-bridge tune: left out {reason}", file=sys.stderr)
+        if args.cross_validate and left_out:
+            check_groups([str(f) for f in prepared], args.group_by)
+        if not args.scheduler:
             result = sweep(prepared, args.estimator, axes, fixed, jobs=args.jobs,
                            init=args.init, progress=not args.quiet)
         done = int(result.done.sum())
@@ -267,7 +281,8 @@ def _tune(args: argparse.Namespace) -> int:
         return INTERRUPTED
     except (ReplayInputError, ValueError) as exc:
         return _fail("tune", exc)
-    print(f"{done} parameter sets x {len(prepared)} file(s) in {result.seconds:.1f} s")
+    print(f"{done} parameter sets x {len(prepared)} file(s) in {result.seconds:.1f} s"
+          + (f" ({len(left_out)} left out: see above)" if left_out else ""))
     if best is not None:
         i = result.best_index
         print(f"best {args.estimator}: " + ", ".join(f"{k}={v:.6g}" for k, v in best.items())
@@ -280,7 +295,8 @@ def _tune(args: argparse.Namespace) -> int:
         print("\n".join(cv.lines()))
     try:
         if args.out and args.out.suffix.lower() == ".json":
-            result.write_json(args.out, {"cross_validation": cv.as_json()} if cv else None)
+            result.write_json(args.out, {"left_out": left_out,
+                                         **({"cross_validation": cv.as_json()} if cv else {})})
             print(f"sweep: {args.out}")
         elif args.out:
             result.write_csv(args.out)

@@ -57,6 +57,15 @@ def tunable(prep: Prepared, path: object) -> Prepared:
     return prep
 
 
+def unusable(display: str, exc: BaseException, load_path: str | None = None) -> str:
+    """Why a log cannot be tuned on, naming it once, as the user gave it (a worker
+    loads it at ``load_path``, its absolute path)."""
+    text = failure_reason(exc)
+    if load_path:
+        text = text.replace(load_path, display)
+    return text if display in text else f"{display}: {text}"
+
+
 def prepare_log(path: str, inputs: TuneInputs) -> Prepared:
     from .cli import require_reference
     from .evaluate import prepare
@@ -76,7 +85,7 @@ def sweep_share(display: str, load_path: str, inputs: TuneInputs, estimator: str
     try:
         prep = prepare_log(load_path, inputs)
     except Exception as exc:
-        return {"error": failure_reason(exc).replace(load_path, display)}
+        return {"error": unusable(display, exc, load_path)}
     scores = np.array([score_params(prep, EstimatorSpec(estimator, {**fixed, **p}), init)
                        for p in points]).reshape(len(points), 3)
     return {"scores": scores, "six_d": is_six_d(prep.recording, estimator)}
@@ -92,8 +101,10 @@ def shares(n_points: int, n_logs: int) -> list[slice]:
 
 def sweep_on_cluster(files: Sequence[Path], inputs: TuneInputs, estimator: str,
                      axes: Sequence[ParamAxis], fixed: dict[str, float], init: str,
-                     scheduler: str, progress: bool = True) -> Sweep:
-    """The sweep of ``replay.tune.sweep``, computed by the workers at ``scheduler``."""
+                     scheduler: str, progress: bool = True) -> tuple[Sweep, list[str]]:
+    """The sweep of ``replay.tune.sweep``, computed by the workers at ``scheduler``, over
+    the logs a worker could tune on, and the reasons the others were left out (in file
+    order). Raises ReplayInputError when no log is left."""
     points = grid_points(estimator, axes, fixed)  # bad names fail here, before any work
     cuts = shares(len(points), len(files))
     tasks = [(str(f), absolute(Path(f)), inputs, estimator, dict(fixed), points[c], init)
@@ -105,20 +116,32 @@ def sweep_on_cluster(files: Sequence[Path], inputs: TuneInputs, estimator: str,
                   on_done=lambda i, r: bar.advance() if bar else None)
     if outcome.interrupted and bar is not None:
         bar.interrupt()
-    for r in outcome.results:
-        if r is not None and "error" in r:
-            raise ReplayInputError(r["error"])
-    results = np.full((len(points), len(files), 3), np.nan)
+    per_file = [outcome.results[f * len(cuts):(f + 1) * len(cuts)] for f in range(len(files))]
+    errors = [next((r["error"] for r in rs if r is not None and "error" in r), None)
+              for rs in per_file]
+    kept = [f for f, e in enumerate(errors) if e is None]
+    left_out = [e for e in errors if e is not None]
+    if not kept:
+        raise ReplayInputError(no_log_left(left_out))
+    results = np.full((len(points), len(kept), 3), np.nan)
     done = np.ones(len(points), dtype=bool)
     six_d = False
-    for k, r in enumerate(outcome.results):
-        f, c = divmod(k, len(cuts))
-        if r is None:
-            done[cuts[c]] = False
-            continue
-        results[cuts[c], f] = r["scores"]
-        six_d |= bool(r["six_d"])
-    return Sweep(estimator, tuple(axes), dict(fixed), tuple(str(f) for f in files), points,
-                 results[:, :, 0], results[:, :, 1], results[:, :, 2],
-                 time.perf_counter() - began, "inclination" if six_d else "total", done,
-                 outcome.interrupted)
+    for column, f in enumerate(kept):
+        for c, r in enumerate(per_file[f]):
+            if r is None:
+                done[cuts[c]] = False
+                continue
+            results[cuts[c], column] = r["scores"]
+            six_d |= bool(r["six_d"])
+    sweep = Sweep(estimator, tuple(axes), dict(fixed), tuple(str(files[f]) for f in kept),
+                  points, results[:, :, 0], results[:, :, 1], results[:, :, 2],
+                  time.perf_counter() - began, "inclination" if six_d else "total", done,
+                  outcome.interrupted)
+    return sweep, left_out
+
+
+def no_log_left(reasons: Sequence[str]) -> str:
+    """The error when every log was left out: the first reasons, and how many more."""
+    more = f" (and {len(reasons) - 3} more)" if len(reasons) > 3 else ""
+    return (reasons[0] if len(reasons) == 1
+            else "no log to tune on: " + "; ".join(reasons[:3]) + more)

@@ -300,6 +300,49 @@ def test_tune_cross_validate_matches_a_hand_computation(tune_logs, tmp_path):
     assert "cross-validated mean" in stdout and "unseen" not in stdout
 
 
+@pytest.fixture(scope="module")
+def tune_logs_with_bad(tune_logs, tmp_path_factory) -> Path:
+    """The tune logs and, in a folder of their own, a corrupt log and one with no
+    reference attitude."""
+    root = tmp_path_factory.mktemp("tune_bad") / "logs"
+    shutil.copytree(tune_logs, root)
+    (root / "bad").mkdir()
+    (root / "bad" / "corrupt.tlog").write_bytes(np.random.default_rng(1).bytes(4000))
+    write_csv(root / "bad" / "no_truth.csv",
+              SyntheticConfig(duration_s=5.0, rate_hz=100.0, seed=4), truth=False)
+    return root
+
+
+def test_tune_leaves_out_what_it_cannot_tune_on_and_goes_on(tune_logs, tune_logs_with_bad,
+                                                            tmp_path):
+    good, mixed = tmp_path / "good.json", tmp_path / "mixed.json"
+    assert cli(["tune", str(tune_logs), *TUNE, "--jobs", "1", "--out", str(good)])[0] == 0
+    code, stdout, err = cli(["tune", str(tune_logs_with_bad), *TUNE, "--jobs", "1",
+                             "--out", str(mixed)])
+    assert code == 0, err
+    lines = err.splitlines()
+    assert len(lines) == 2 and all(ln.startswith("attitude-bridge tune: left out ")
+                                   for ln in lines), err
+    assert "corrupt.tlog" in lines[0] and "no_truth.csv" in lines[1]
+    assert "no reference attitude" in lines[1]
+    assert "(2 left out" in stdout
+    a, b = json.loads(good.read_text()), json.loads(mixed.read_text())
+    # the sweep over the others is the sweep over the good logs alone
+    assert [Path(f).relative_to(tune_logs_with_bad) for f in b["files"]] == [
+        Path(f).relative_to(tune_logs) for f in a["files"]]
+    assert b["points"] == a["points"] and b["best"] == a["best"]
+    assert a["left_out"] == [] and [r.split(":")[0] for r in b["left_out"]] == [
+        str(tune_logs_with_bad / "bad" / n) for n in ("corrupt.tlog", "no_truth.csv")]
+
+
+def test_tune_with_nothing_usable_is_one_line_and_exit_2(tune_logs_with_bad):
+    code, _, err = cli(["tune", str(tune_logs_with_bad / "bad"), *TUNE, "--jobs", "1"])
+    assert code == 2 and err.count("\n") == 1 and "no log to tune on" in err
+    assert "corrupt.tlog" in err and "no_truth.csv" in err
+    code, _, err = cli(["tune", str(tune_logs_with_bad / "bad" / "corrupt.tlog"), *TUNE])
+    assert code == 2 and err.count("\n") == 1 and "no log to tune on" not in err
+
+
 def test_cross_validate_needs_two_groups(tune_logs):
     code, _, err = cli(["tune", str(tune_logs / "shaken"), *TUNE, "--cross-validate",
                         "--group-by", "folder"])
@@ -354,13 +397,14 @@ def test_dask_scheduler_gives_the_one_core_summary(corpus, one_core, dask_cluste
 
 
 @pytest.mark.xdist_group("dask")
-def test_dask_tune_cross_validated_equals_local(tune_logs, dask_cluster, tmp_path):
+def test_dask_tune_cross_validated_equals_local(tune_logs_with_bad, dask_cluster, tmp_path):
     docs = []
     for where in (["--jobs", "1"], ["--scheduler", dask_cluster]):
         out = tmp_path / f"{where[0]}.json"
-        assert cli(["tune", str(tune_logs), *TUNE, *where, "--cross-validate",
+        assert cli(["tune", str(tune_logs_with_bad), *TUNE, *where, "--cross-validate",
                     "--out", str(out)])[0] == 0
         doc = json.loads(out.read_text())
         doc.pop("seconds")
         docs.append(doc)
     assert docs[0] == docs[1] and docs[0]["cross_validation"]["logs"]
+    assert len(docs[0]["left_out"]) == 2  # the unusable logs, left out alike

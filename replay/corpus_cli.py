@@ -33,8 +33,7 @@ from .parallel import run
 from .progress import Progress
 
 #: option -> why it does not apply to several logs
-SINGLE_FILE_ONLY = {"png": "--png writes one replay's figures",
-                    "smooth": "--smooth replays one log"}
+SINGLE_FILE_ONLY = {"png": "--png writes one replay's figures"}
 
 
 def _fail(exc: Exception | str) -> int:
@@ -71,7 +70,7 @@ def options_from(args: argparse.Namespace) -> ReplayOptions:
     for spec in specs:  # unknown names and parameters fail here
         estimators.estimator_class(spec.name).make_params(**spec.params)
     return ReplayOptions(tuple(specs), args.board, args.imu, args.reference, args.init,
-                         args.declination_deg, args.aid or "auto")
+                         args.declination_deg, args.aid or "auto", args.smooth)
 
 
 def _warm(options: ReplayOptions) -> None:
@@ -81,7 +80,8 @@ def _warm(options: ReplayOptions) -> None:
     from .synthetic import SyntheticConfig, generate
 
     with contextlib.suppress(Exception):  # an optimisation; tasks report real problems
-        evaluate(generate(SyntheticConfig(duration_s=1.0)), list(options.specs))
+        evaluate(generate(SyntheticConfig(duration_s=1.0)), list(options.specs),
+                 smooth=options.smooth)
 
 
 def _size(path: Path) -> int:

@@ -42,6 +42,7 @@ class ReplayOptions:
     init: str = "sensors"
     declination_deg: float | None = None
     aid: str = "auto"
+    smooth: bool = False  # also the eskf smoothed over each log (replay --smooth)
 
 
 def failure_reason(exc: BaseException) -> str:
@@ -90,7 +91,7 @@ def replay_log(display: str, load_path: str, options: ReplayOptions) -> dict:
                                        f"attitude")
             ev = evaluate(rec, list(options.specs) if options.specs else None,
                           init=options.init, declination_deg=options.declination_deg,
-                          aid=options.aid)
+                          aid=options.aid, smooth=options.smooth)
     except Exception as exc:  # one bad log must not stop the batch
         entry["reason"] = failure_reason(exc).replace(load_path, display)
         return entry
@@ -98,8 +99,10 @@ def replay_log(display: str, load_path: str, options: ReplayOptions) -> dict:
     entry.update(
         format=rec.format, vehicle=type_name(rec.mav_type), samples=rec.n,
         duration_s=rec.duration, rate_hz=rec.rate_hz, reference=ev.reference_kind,
-        estimators={label: {k: v for k, v in s.as_json().items() if k not in TIMING_FIELDS}
-                    for label, s in ev.scores.items()})
+        estimators=_scores_json(ev.scores))
+    if ev.vs_smoothed:  # no truth: every run against the smoothed one (labelled, per log)
+        entry["vs_smoothed"] = {"reference": ev.smoothed_label + " (not truth)",
+                                "estimators": _scores_json(ev.vs_smoothed)}
     scored = any(math.isfinite(s.total_deg) or math.isfinite(s.inclination_deg)
                  for s in ev.scores.values())
     if scored:
@@ -109,6 +112,11 @@ def replay_log(display: str, load_path: str, options: ReplayOptions) -> dict:
         entry["reason"] = (f"{ev.not_run}; estimators not run" if ev.not_run
                            else prep.unscored or "no estimator started on a scored sample")
     return clean(entry)
+
+
+def _scores_json(scores: dict) -> dict:
+    return {label: {k: v for k, v in s.as_json().items() if k not in TIMING_FIELDS}
+            for label, s in scores.items()}
 
 
 def crashed(display: str, why: str) -> dict:

@@ -335,6 +335,38 @@ def test_tune_leaves_out_what_it_cannot_tune_on_and_goes_on(tune_logs, tune_logs
         str(tune_logs_with_bad / "bad" / n) for n in ("corrupt.tlog", "no_truth.csv")]
 
 
+def test_corpus_smooth_is_the_single_file_smooth(tune_logs_with_bad, tmp_path):
+    """--smooth over several logs: the smoothed row is the single-file replay's, and a
+    log without a truth is scored against it, labelled."""
+    folder = tmp_path / "logs"
+    folder.mkdir()
+    shutil.copy(tune_logs_with_bad / "shaken" / "s1.csv", folder)
+    shutil.copy(tune_logs_with_bad / "bad" / "no_truth.csv", folder)
+    out = tmp_path / "corpus.json"
+    code, _, err = cli(["replay", str(folder), "-e", "eskf", "--smooth", "--jobs", "1", "-q",
+                        "--json", str(out)])
+    assert code == 0, err
+    doc = json.loads(out.read_text())
+    for name in ("s1.csv", "no_truth.csv"):
+        single_out = tmp_path / f"{name}.json"
+        assert cli(["replay", str(folder / name), "-e", "eskf", "--smooth",
+                    "--json", str(single_out)])[0] == 0
+        single = json.loads(single_out.read_text())
+        e = entry(doc, name)
+        assert set(e["estimators"]) == {"eskf", "eskf smoothed"}
+        for label in e["estimators"]:
+            for key in ("total_deg", "inclination_deg"):
+                assert e["estimators"][label][key] == single["estimators"][label][key]
+        if name == "no_truth.csv":
+            assert e["vs_smoothed"]["reference"] == "eskf smoothed (not truth)"
+            assert e["vs_smoothed"]["estimators"]["eskf"]["total_deg"] == (
+                single["vs_smoothed"]["estimators"]["eskf"]["total_deg"])
+            assert e["vs_smoothed"]["estimators"]["eskf"]["total_deg"] > 0.0
+        else:
+            assert "vs_smoothed" not in e
+            assert e["estimators"]["eskf smoothed"]["total_deg"] > 0.0
+
+
 def test_tune_with_nothing_usable_is_one_line_and_exit_2(tune_logs_with_bad):
     code, _, err = cli(["tune", str(tune_logs_with_bad / "bad"), *TUNE, "--jobs", "1"])
     assert code == 2 and err.count("\n") == 1 and "no log to tune on" in err

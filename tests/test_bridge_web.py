@@ -196,6 +196,26 @@ def test_page_agrees_with_the_status_report(bridge, browser):
     context.close()
 
 
+def test_the_live_part_does_not_wait_for_the_plots(bridge, browser):
+    """BokehJS (the plots) loads beside the live part: with BokehJS refused, the
+    indicators, facts and error table still show and update, and the page says why
+    there are no plots."""
+    context = browser.new_context(viewport={"width": 1200, "height": 1400})
+    _OPEN.append(context)
+    page = context.new_page()
+    page.route("**/bokeh/**", lambda route: route.abort())
+    page.goto(bridge.web["url"])
+    page.wait_for_selector('section[data-sysid="1"] table.errors td', timeout=10000)
+    angles0 = page.inner_text('.indicator[data-series="eskf"] .angles')
+    time.sleep(1.0)
+    assert page.inner_text('.indicator[data-series="eskf"] .angles') != angles0
+    assert shown(page, 1, "imu").startswith("RAW_IMU")
+    assert page.locator("section[data-sysid='1'] .bk-Canvas").count() == 0
+    errors = page.evaluate("window.attitudeView.errors")
+    assert len(errors) == 1 and "bokeh" in errors[0] and "did not load" in errors[0], errors
+    context.close()
+
+
 def test_five_viewers_then_none_left_behind(bridge, browser):
     pages = []
     try:

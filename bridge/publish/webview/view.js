@@ -105,6 +105,14 @@ function legend(series, primary) {
   return box;
 }
 
+// A buffer of points not yet plotted (plots not built, or not drawn for long: a hidden
+// tab) keeps its last n: bounded whatever the page does.
+function keepLast(buf, n) {
+  if (buf.t.length > n) {
+    for (const column of Object.values(buf)) column.splice(0, column.length - n);
+  }
+}
+
 // --- one vehicle ----------------------------------------------------------------------
 class VehicleView {
   constructor(sysid, v, windowS) {
@@ -219,9 +227,7 @@ class VehicleView {
         this.lastT[name] = att[0];
         const buf = this.buffer[name];
         buf.t.push(att[0]); buf.roll.push(att[1]); buf.pitch.push(att[2]); buf.yaw.push(att[3]);
-        if (buf.t.length > this.rollover) {  // not drawn for long (a hidden tab): bounded
-          for (const column of Object.values(buf)) column.splice(0, column.length - this.rollover);
-        }
+        keepLast(buf, this.rollover);
       }
     }
     if (st.report_time !== this.lastReport) {
@@ -290,9 +296,7 @@ class VehicleView {
       if (c && c.total_deg !== null && c.total_deg !== undefined) {
         buf.t.push(t);
         buf.err.push(c.total_deg);
-        if (buf.t.length > this.rollover) {
-          for (const column of Object.values(buf)) column.splice(0, column.length - this.rollover);
-        }
+        keepLast(buf, this.rollover);
       }
     }
   }

@@ -87,6 +87,7 @@ GRID: dict[str, tuple[float, ...]] = {
     "gyro_noise": (0.005, 0.008, 0.012),
     "gyro_rate_noise": (0.002, 0.003, 0.005),
     "aid_density": (0.4, 0.8, 1.6),
+    "mag_delay": (0.0, 0.005, 0.01),
 }
 #: The tuning may not buy a better mean with a worse worst case than this (issue 9).
 WORST_INCLINATION_DEG = 1.8

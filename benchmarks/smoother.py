@@ -1,7 +1,7 @@
 """The smoother (``estimators.smooth``, ``replay --smooth``) against the online eskf, VQF
 online and offline, and the autopilot's own attitude, on the dev recordings.
 
-    python benchmarks/smoother.py [--json out.json]      # about 2 minutes
+    python benchmarks/smoother.py [--json out.json]      # about 3 minutes
 
 * **BROAD** (9 dev trials): leave-one-trial-out over a small grid of the eskf's noise
   parameters (below), chosen for the smoothed and, separately, for the online filter:
@@ -37,6 +37,8 @@ GRID: dict[str, tuple[float, ...]] = {
     "mag_noise": (0.15, 0.25, 0.4),
     "gyro_noise": (0.005, 0.008, 0.012),
     "gyro_rate_noise": (0.001, 0.002, 0.004),
+    "velocity_rw": (0.1, 0.3),
+    "mag_delay": (0.0, 0.005, 0.01),
 }
 
 

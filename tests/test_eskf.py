@@ -214,17 +214,40 @@ def test_wrong_start_converges():
 @pytest.mark.parametrize("rate", [100.0, 8000.0])
 @pytest.mark.parametrize("axis", [0, 1, 2])
 def test_constant_rate_with_consistent_sensors(rate, axis):
-    """200 °/s about each body axis for 3 s from the tilted attitude, consistent acc/mag:
-    the exact strapdown step, the trapezoidal velocity and consistent measurements keep
-    the error at rounding level (measured < 1e-11°)."""
+    """200 °/s about each body axis for 3 s from the tilted attitude, consistent acc/mag
+    (a magnetometer sampled with the gyro: mag_delay 0): the exact strapdown step, the
+    trapezoidal velocity and consistent measurements keep the error at rounding level
+    (measured < 1e-11°)."""
     w = np.zeros(3)
     w[axis] = 200.0 * DEG
     n = int(3.0 * rate)
     t = np.arange(n) / rate
     truth = Q.multiply(TILT, Q.from_rotvec(np.outer(t, w)))
     acc, mag = _sensors(truth)
-    q = estimators.batch("eskf", np.tile(w, (n, 1)), acc, mag, rate_hz=rate)
+    q = estimators.batch("eskf", np.tile(w, (n, 1)), acc, mag, rate_hz=rate, mag_delay=0.0)
     assert np.degrees(Q.angle_between(q, truth)).max() < 1e-6
+
+
+def test_a_late_magnetometer_is_turned_back_by_the_rotation_since():
+    """Turning at 180 °/s about the vertical, the magnetometer reading 10 ms old (a
+    magnetometer's own filter and slower sampling): taken as it comes it puts the heading
+    1.8° behind (measured 1.80° after 20 s); with mag_delay set to the delay the heading
+    is right (measured 0.013°); the inclination is untouched either way."""
+    rate, delay = 200.0, 0.01
+    n = int(30 * rate)
+    t = np.arange(n) / rate
+    yaw_rate = np.array([0.0, 0.0, 180.0 * DEG])
+    truth = Q.multiply(Q.from_rotvec(np.outer(t, yaw_rate)), TILT)
+    acc, _ = _sensors(truth)
+    _, mag = _sensors(Q.multiply(Q.from_rotvec(np.outer(t - delay, yaw_rate)), TILT))
+    gyr = np.tile(Q.rotate(Q.conjugate(TILT), yaw_rate), (n, 1))
+    last = slice(int(20 * rate), None)
+    late = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, mag_delay=0.0)
+    turned = estimators.run("eskf", gyr, acc, mag, rate_hz=rate, mag_delay=delay)
+    heading_late, _ = _errors_deg(late.q[last], truth[last])
+    heading, incl = _errors_deg(turned.q[last], truth[last])
+    assert np.abs(heading_late).min() > 1.7
+    assert np.abs(heading).max() < 0.019 and incl.max() < 1e-3
 
 
 # --- linear acceleration -----------------------------------------------------------------
@@ -533,7 +556,7 @@ def test_bad_samples_never_poison_the_state():
 
 def test_non_positive_parameters_are_rejected():
     for bad in ({"update_period": 0.0}, {"mag_noise": -1.0}, {"gyro_noise": math.inf},
-                {"drag": -0.5}):
+                {"drag": -0.5}, {"mag_delay": -0.01}, {"mag_delay": math.nan}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             estimators.create("eskf", **bad)
 
@@ -542,7 +565,7 @@ def test_non_positive_parameters_are_rejected():
 # Measured with the defaults (total, heading, inclination in degrees); the defaults were
 # chosen by benchmarks/accuracy.py (leave-one-trial-out, docs/accuracy.md). Tolerance: +10 %.
 BROAD_TRIAL = "28_disturbed_stationary_magnet_A"
-BROAD_MEASURED = (2.19, 1.88, 1.13)
+BROAD_MEASURED = (1.98, 1.61, 1.15)
 
 
 def test_broad_regression(data_dir):

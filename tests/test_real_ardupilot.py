@@ -81,5 +81,5 @@ def test_arducopter_flight_through_the_bridge(tmp_path):
     # inclination alone: comparable, not always better (README; on the recorded
     # ArduPilot flights replayed, ArduPilot's own is better: docs/accuracy.md)
     assert ours.inclination_deg <= INCLINATION_VS_AUTOPILOT * theirs.inclination_deg
-    assert ours.total_deg <= 0.9  # README: 0.60°
-    assert ours.inclination_deg <= 0.5  # README: 0.35°
+    assert ours.total_deg <= 1.1  # README: 0.75°
+    assert ours.inclination_deg <= 0.74  # README: 0.49°

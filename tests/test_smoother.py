@@ -20,10 +20,10 @@ from replay import load
 from replay.evaluate import aiding_kwargs, evaluate, flight_kwargs, prepare
 
 #: (flight, smoothed total, smoothed inclination) measured with the defaults [deg]
-PX4_SMOOTHED = {"px4_sih/sih_aggressive.tlog": (0.825, 0.338),
-                "px4_sih/sih_box.tlog": (0.690, 0.382),
-                "sitl/px4_sih_touchdown.tlog": (0.989, 0.725),
-                "sitl/px4_sih_dashes.tlog": (0.938, 0.593)}
+PX4_SMOOTHED = {"px4_sih/sih_aggressive.tlog": (0.809, 0.355),
+                "px4_sih/sih_box.tlog": (0.729, 0.400),
+                "sitl/px4_sih_touchdown.tlog": (0.966, 0.730),
+                "sitl/px4_sih_dashes.tlog": (0.923, 0.613)}
 HEADROOM = 1.1
 SITL_DIR = Path(__file__).parent / "data" / "sitl"
 #: the issue's bound: smoothed total <= this x PX4's own attitude, every phase scored
@@ -57,8 +57,8 @@ def test_broad_smoothed_beats_online_inclination(data_dir):
         incl.append(ev.scores["eskf smoothed"].inclination_deg)
         incl_online.append(ev.scores["eskf"].inclination_deg)
     assert len(totals) == 9
-    assert np.mean(totals) <= HEADROOM * 2.000, np.mean(totals)
-    assert max(incl) <= HEADROOM * 0.965, max(incl)
+    assert np.mean(totals) <= HEADROOM * 1.815, np.mean(totals)
+    assert max(incl) <= HEADROOM * 1.004, max(incl)
     assert np.mean(incl) <= 0.85 * np.mean(incl_online), (np.mean(incl), np.mean(incl_online))
 
 

@@ -272,6 +272,7 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _PEND_AGE,  # its age at the update [s]
  _AID_DT,  # time between the last two velocity measurements [s]
  _MAG,  # 3: newest magnetometer reading of the period
+ _MAG_W,  # 3: the body rate (bias removed) when it came [rad/s]
  _MAG_OK,  # 1 if _MAG holds one
  _MAG_PREV,  # 3: the previous magnetometer sample as given
  _MAG_TURN,  # how far the body has turned since that reading was first seen [rad]
@@ -286,7 +287,7 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _JA, _JB,  # scratch: Joseph form's I − K·H and (I − K·H)·P (_NX × _NX each)
  TAP,  # what the smoother needs of the last Kalman step (TAP_* below)
  _STATE_SIZE) = _layout(3, 1, _NX * _NX, 1, 1, 1, 3, 3, 3, 1, 3, 3, 3, 3, 3, 3, 1, 1, 1, 1,
-                        1, 1, 1, 1, 1, 1, 1, 1, 1, 3, 1, 1, 3, 1, 3, 1, 1, 1, 1, 1,
+                        1, 1, 1, 1, 1, 1, 1, 1, 1, 3, 1, 1, 3, 3, 1, 3, 1, 1, 1, 1, 1,
                         3 * _NX, 3 * _NX, 3 * _NX, _NX, _NX * _NX, _NX * _NX,
                         15 + 2 * (11 + _NX * _NX))
 
@@ -735,11 +736,30 @@ def _mag_disturbed(state: np.ndarray, params: np.ndarray, norm: float, dip: floa
     return disturbed
 
 
+@_core.kernel(inline="always")
+def _mag_reading_now(state: np.ndarray, params: np.ndarray) -> tuple:
+    """The period's reading where the field is in the body now. One mag_delay old, it
+    saw the body as it was then, m = R(t − τ)ᵀ·m_w = exp(τ[ω]×)·R(t)ᵀ·m_w: turned by
+    −τ·ω (the rate when it came). Done here, once per update, not on every sample."""
+    mx, my, mz = state[_MAG], state[_MAG + 1], state[_MAG + 2]
+    wx, wy, wz = state[_MAG_W], state[_MAG_W + 1], state[_MAG_W + 2]
+    rate = math.sqrt(wx * wx + wy * wy + wz * wz)
+    angle = params[_I.mag_delay] * rate
+    if angle <= 1e-12:
+        return mx, my, mz
+    kx, ky, kz = wx / rate, wy / rate, wz / rate
+    c, s = math.cos(angle), -math.sin(angle)
+    kdot = (kx * mx + ky * my + kz * mz) * (1.0 - c)
+    return (mx * c + (ky * mz - kz * my) * s + kx * kdot,
+            my * c + (kz * mx - kx * mz) * s + ky * kdot,
+            mz * c + (kx * my - ky * mx) * s + kz * kdot)
+
+
 @_core.kernel
 def _heading_update(state: np.ndarray, params: np.ndarray, T: float) -> None:
     """Heading-only magnetometer update (gain on the tilt errors zeroed, Joseph form)."""
     state[_core.MAG_REJ] = 0.0
-    mx, my, mz = state[_MAG], state[_MAG + 1], state[_MAG + 2]
+    mx, my, mz = _mag_reading_now(state, params)
     ex, ey, ez = _core.body_to_world(state, mx, my, mz)
     horiz = math.sqrt(ex * ex + ey * ey)
     norm = math.sqrt(horiz * horiz + ez * ez)
@@ -1018,25 +1038,6 @@ def _first_step(state: np.ndarray, params: np.ndarray, mx: float, my: float, mz:
     state[_pi(_TH + 2, _TH + 2)] += k * k * p00
 
 
-@_core.kernel(inline="always")
-def _store_mag(state: np.ndarray, params: np.ndarray, mx: float, my: float, mz: float,
-               wx: float, wy: float, wz: float) -> None:
-    """The reading for the next heading update. One mag_delay old, it saw the body as it
-    was then, m = R(t − τ)ᵀ·m_w = exp(τ[ω]×)·R(t)ᵀ·m_w: turned by −τ·ω (the rate now),
-    it says where the field is in the body now."""
-    rate = math.sqrt(wx * wx + wy * wy + wz * wz)
-    angle = params[_I.mag_delay] * rate
-    if angle > 1e-12:
-        kx, ky, kz = wx / rate, wy / rate, wz / rate
-        c, s = math.cos(angle), -math.sin(angle)
-        kdot = (kx * mx + ky * my + kz * mz) * (1.0 - c)
-        mx, my, mz = (mx * c + (ky * mz - kz * my) * s + kx * kdot,
-                      my * c + (kz * mx - kx * mz) * s + ky * kdot,
-                      mz * c + (kx * my - ky * mx) * s + kz * kdot)
-    state[_MAG], state[_MAG + 1], state[_MAG + 2] = mx, my, mz
-    state[_MAG_OK] = 1.0
-
-
 @_core.kernel
 def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
           vx, vy, vz, v_age) -> None:
@@ -1089,7 +1090,9 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
             state[_MAG_TURN] = 0.0
             state[_MAG_PREV], state[_MAG_PREV + 1], state[_MAG_PREV + 2] = mx, my, mz
         if state[_MAG_TURN] <= _MAG_STALE_RAD:
-            _store_mag(state, params, mx, my, mz, gx - b0, gy - b1, gz - b2)
+            state[_MAG], state[_MAG + 1], state[_MAG + 2] = mx, my, mz
+            state[_MAG_W], state[_MAG_W + 1], state[_MAG_W + 2] = gx - b0, gy - b1, gz - b2
+            state[_MAG_OK] = 1.0
     if math.isfinite(vx) or math.isfinite(vy) or math.isfinite(vz):
         state[_PEND], state[_PEND + 1], state[_PEND + 2] = vx, vy, vz
         state[_PEND_AGE] = v_age

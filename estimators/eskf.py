@@ -60,11 +60,12 @@ the velocity information), the bias random walk and a velocity random walk.
 * *Rest* (VQF's rest detector and thresholds: gyro and accelerometer within
   ``rest_gyr_th``/``rest_acc_th`` of their low-pass for ``rest_time``, and the low-passed
   gyro within ``rest_bias_th`` of the bias estimate, so that a steady turn is not rest):
-  the low-passed gyro measures the bias, and, unaided or while the drag model runs, the
-  mean specific force measures the tilt (otherwise the measured velocity tells a
-  sustained acceleration, which is just as steady, from rest). Not the velocity: a
-  multirotor cruising at constant speed is exactly as steady as one standing on the
-  ground.
+  unaided or while the drag model runs, the mean specific force measures the tilt
+  (otherwise the measured velocity tells a sustained acceleration, which is just as
+  steady, from rest), and, unless the vehicle flies, the low-passed gyro measures the
+  bias (a hover is steady but not still: a slow yaw, the position hold's corrections).
+  Not the velocity: a multirotor cruising at constant speed is exactly as steady as one
+  standing on the ground.
 * *Magnetometer, heading only*: the heading of the field rotated into the world frame
   is a measurement of ``δθ_z``; its gain on ``δθ_x, δθ_y`` is zeroed (Joseph form keeps
   ``P`` consistent), so a disturbed field cannot tilt the estimate, while the bias
@@ -879,22 +880,30 @@ def _mag_steadiness(state: np.ndarray, params: np.ndarray, mx: float, my: float,
 
 
 @_core.kernel
-def _rest_update(state: np.ndarray, params: np.ndarray, T: float, aided: bool) -> None:
-    """At rest the low-passed gyro is the bias, and the vehicle is not accelerating, so
-    the mean specific force is gravity: a tilt measurement (rest holds only while the
-    specific force is steady, and a multirotor's changes with its speed through rotor
-    drag, so a steady cruise qualifies too — it is not accelerating either; a vehicle
-    with aiding leaves this to its measured velocity — a steady specific force is also what
-    a sustained acceleration gives — unless the drag model runs: a flying multirotor's
-    specific force changes with its speed, so steady means not accelerating). Not a
-    zero-velocity update: that cruise is not standing still."""
-    _clear_rows(state, 3)
-    for i in range(3):
-        state[_H + i * _NX + _BI + i] = 1.0
-    rn = params[_I.rest_noise] ** 2 / T
-    _kalman_update(state, params, 3, state[_GLP] - state[_core.B0],
-                   state[_GLP + 1] - state[_core.B0 + 1], state[_GLP + 2] - state[_core.B0 + 2],
-                   rn, rn, rn, 0.0)
+def _rest_update(state: np.ndarray, params: np.ndarray, T: float, aided: bool,
+                 still: bool) -> None:
+    """At rest the vehicle is not accelerating, so the mean specific force is gravity: a
+    tilt measurement (rest holds only while the specific force is steady, and a
+    multirotor's changes with its speed through rotor drag, so a steady cruise qualifies
+    too — it is not accelerating either; a vehicle with aiding leaves this to its
+    measured velocity — a steady specific force is also what a sustained acceleration
+    gives — unless the drag model runs: a flying multirotor's specific force changes
+    with its speed, so steady means not accelerating). Not a zero-velocity update: that
+    cruise is not standing still.
+
+    ``still`` (not flying): the low-passed gyro is also the bias. A flying vehicle is
+    never held still: a steady gyro in a hover is a slow yaw or the position hold's
+    corrections as much as a bias, and taking it for the bias turns that motion into
+    attitude error; in the air the bias is left to the drag model, the aiding and the
+    magnetometer."""
+    if still:
+        _clear_rows(state, 3)
+        for i in range(3):
+            state[_H + i * _NX + _BI + i] = 1.0
+        rn = params[_I.rest_noise] ** 2 / T
+        _kalman_update(state, params, 3, state[_GLP] - state[_core.B0],
+                       state[_GLP + 1] - state[_core.B0 + 1],
+                       state[_GLP + 2] - state[_core.B0 + 2], rn, rn, rn, 0.0)
     if aided:
         return  # the measured velocity knows better whether it is accelerating
     # world-frame mean specific force: R̂·f̄ = (g·δθ_y, −g·δθ_x, −g) for a tilt error δθ
@@ -971,7 +980,8 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
     at_rest = state[_REST_T] >= params[_I.rest_time]
     drag = _drag_model_on(state, params, T, r)
     if at_rest:
-        _rest_update(state, params, T, aided and not drag)
+        flying = drag or state[_core.FLIGHT] == _core.FLIGHT_AIRBORNE
+        _rest_update(state, params, T, aided and not drag, not flying)
         r = _rotation(state)
     else:
         state[_REST_ANCHORED] = 0.0

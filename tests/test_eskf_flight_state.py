@@ -2,7 +2,8 @@
 
 Emulated GY-86 board (calibrated from its own calibration session, 250 Hz) on the
 emulator's profiles, with the flight state the emulator reports. Gates are at most 1.5x
-what was measured (docs/accuracy.md; measured at the commit that added them):
+what was measured (docs/accuracy.md; handheld_flight re-measured when the rest test
+stopped measuring the gyro bias in the air):
 
 =================  ==========================  ===============
 profile            measured total / incl [°]   gate
@@ -10,8 +11,8 @@ profile            measured total / incl [°]   gate
 tilt (15 s)        0.51 / 0.11                 0.77
 gentle (15 s)      0.62 / 0.31                 0.92
 calibration        0.35 / 0.14                 0.49
-handheld_flight    0.253 / 0.099 (state given) 0.37 / 0.148
-handheld_flight    0.254 / 0.105 (data alone)  0.37 / 0.157
+handheld_flight    0.270 / 0.093 (state given) 0.37 / 0.14
+handheld_flight    0.299 / 0.138 (data alone)  0.37 / 0.157
 =================  ==========================  ===============
 """
 
@@ -83,7 +84,7 @@ def test_touchdown_and_second_take_off_follow_the_reported_state(calibration):
     assert len(edges) == 4, "two take-offs and two touchdowns"
     told, air = _run(data, airborne, drag=MULTIROTOR_DRAG_PER_S)
     assert np.array_equal(air, airborne > 0)
-    assert told.total_deg < 0.37 and told.inclination_deg < 0.148, told
+    assert told.total_deg < 0.37 and told.inclination_deg < 0.14, told
     off, _ = _run(data, None, drag=0.0)
     assert off.total_deg > 5.0 * told.total_deg
 

@@ -282,7 +282,8 @@ def test_replay_writes_csv_json_and_report(tmp_path, capsys):
 
 def test_ctrl_c_in_tune_keeps_the_partial_sweep(tmp_path):
     """SIGINT while tune sweeps: exit 130, one line instead of a traceback, and the points
-    done so far in --out."""
+    done so far in --out. The grid is long (4000 points, about 10 s) so that the signal
+    lands in the middle of it: 400 points once finished in 1.1 s, before the signal."""
     import signal
     import subprocess
     import sys
@@ -292,21 +293,23 @@ def test_ctrl_c_in_tune_keeps_the_partial_sweep(tmp_path):
     data = tmp_path / "s.csv"
     csv_format.write(data, rec.t, rec.gyr, rec.acc, rec.mag, rec.reference.q)
     out = tmp_path / "sweep.csv"
+    points = 4000
     cmd = [sys.executable, "-m", "bridge.app.cli", "tune", str(data), "-e", "mahony",
-           "-p", "kp=0.05:5:400", "--set", "ki=0", "-j", "2", "--out", str(out)]
+           "-p", f"kp=0.05:5:{points}", "--set", "ki=0", "-j", "2", "--out", str(out)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             cwd=os.path.dirname(os.path.dirname(__file__)))
     deadline = time.monotonic() + 120
     progress = ""
     while time.monotonic() < deadline:  # wait until some grid points are done
         progress += os.read(proc.stderr.fileno(), 4096).decode()
-        if any(f" {n}/400 " in progress for n in range(5, 400)):
+        if any(f" {n}/{points} " in progress for n in range(5, points)):
             break
+    assert proc.poll() is None, "the sweep ended before it could be interrupted"
     proc.send_signal(signal.SIGINT)
     stdout, stderr = proc.communicate(timeout=60)
     stderr = progress + stderr
     assert proc.returncode == 130, stderr
     assert "Traceback" not in stderr and "interrupted:" in stderr
     rows = out.read_text().splitlines()
-    assert rows[0].startswith("kp,mean_total_deg") and 5 <= len(rows) - 1 < 400
+    assert rows[0].startswith("kp,mean_total_deg") and 5 <= len(rows) - 1 < points
     assert "best mahony" in stdout

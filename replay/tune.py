@@ -233,17 +233,7 @@ def sweep(prepared: Sequence[Prepared], estimator: str, axes: Sequence[ParamAxis
                 if bar:
                     bar.advance()
         else:
-            # The pool's helper threads are made with Ctrl-C blocked, so that it reaches
-            # the main thread, which waits for results and stops the pool; a SIGINT taken
-            # by a helper thread can leave that wait unaware of it until the sweep ends.
-            sigmask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-            try:
-                pool = mp.get_context("fork").Pool(jobs, initializer=_ignore_sigint)
-            except BaseException:
-                signal.pthread_sigmask(signal.SIG_SETMASK, sigmask)
-                raise
-            with pool:
-                signal.pthread_sigmask(signal.SIG_SETMASK, sigmask)
+            with mp.get_context("fork").Pool(jobs, initializer=_ignore_sigint) as pool:
                 chunk = max(1, len(tasks) // (jobs * 8))
                 try:
                     for i, r in pool.imap_unordered(_score_point, tasks[1:], chunksize=chunk):

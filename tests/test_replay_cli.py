@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 from pathlib import Path
@@ -280,6 +281,20 @@ def test_replay_writes_csv_json_and_report(tmp_path, capsys):
     assert len(list((tmp_path / "png").glob("*.png"))) == 3
 
 
+def _signal_state(pid: int) -> str:
+    """Each thread's blocked, ignored and caught signal masks (Linux /proc), so that a
+    lost SIGINT can be told apart: inherited as ignored, blocked, or taken by a thread."""
+    lines = []
+    for task in sorted(glob.glob(f"/proc/{pid}/task/*/status")):
+        try:
+            fields = dict(line.split(":", 1) for line in Path(task).read_text().splitlines())
+        except OSError:
+            continue
+        lines.append(" ".join(f"{k}={fields.get(k, '?').strip()}" for k in
+                              ("Name", "SigBlk", "SigIgn", "SigCgt", "SigPnd", "ShdPnd")))
+    return "\n".join(lines)
+
+
 def test_ctrl_c_in_tune_keeps_the_partial_sweep(tmp_path):
     """SIGINT while tune sweeps: exit 130, one line instead of a traceback, and the points
     done so far in --out. The grid is long (4000 points, about 10 s) so that the signal
@@ -305,10 +320,13 @@ def test_ctrl_c_in_tune_keeps_the_partial_sweep(tmp_path):
         if any(f" {n}/{points} " in progress for n in range(5, points)):
             break
     assert proc.poll() is None, "the sweep ended before it could be interrupted"
+    signal_state = _signal_state(proc.pid)
     proc.send_signal(signal.SIGINT)
+    time.sleep(0.3)
+    signal_state += "\nafter:\n" + _signal_state(proc.pid)
     stdout, stderr = proc.communicate(timeout=60)
     stderr = progress + stderr
-    assert proc.returncode == 130, stderr
+    assert proc.returncode == 130, f"{stderr}\nsignal state before SIGINT:\n{signal_state}"
     assert "Traceback" not in stderr and "interrupted:" in stderr
     rows = out.read_text().splitlines()
     assert rows[0].startswith("kp,mean_total_deg") and 5 <= len(rows) - 1 < points

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import glob
 import json
 import os
 from pathlib import Path
@@ -285,9 +284,9 @@ def _signal_state(pid: int) -> str:
     """Each thread's blocked, ignored and caught signal masks (Linux /proc), so that a
     lost SIGINT can be told apart: inherited as ignored, blocked, or taken by a thread."""
     lines = []
-    for task in sorted(glob.glob(f"/proc/{pid}/task/*/status")):
+    for task in sorted(Path(f"/proc/{pid}/task").glob("*/status")):
         try:
-            fields = dict(line.split(":", 1) for line in Path(task).read_text().splitlines())
+            fields = dict(line.split(":", 1) for line in task.read_text().splitlines())
         except OSError:
             continue
         lines.append(" ".join(f"{k}={fields.get(k, '?').strip()}" for k in

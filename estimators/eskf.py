@@ -17,7 +17,7 @@ velocity ``v`` (NED), drag coefficient ``μ``. Strapdown ``q ← q ⊗ exp((ω �
 ``v ← v + (R·f + g)·dt``.
 
 **Error state** (Kalman, every ``update_period`` — the filter's cost does not grow with
-the IMU rate): ``x = [δθ (world frame, 3), δb (3), δv (3), δμ]``, true attitude
+the IMU rate): ``x = [δθ (world frame, 3), δb (3), δv (3), δλ]``, true attitude
 ``exp(δθ) ⊗ q``. Over a period ``T`` with the specific force integrated to ``ΔV``
 (world frame): ``δθ' = δθ − R·T·δb``, ``δv' = δv − [ΔV]×·δθ``; process noise from the
 gyro (angle random walk, covering its noise and unmodelled errors, plus a part that
@@ -39,7 +39,11 @@ the velocity information), the bias random walk and a velocity random walk.
 * *Rotor drag* (multirotors, ``drag`` > 0, *while airborne*): a flying multirotor's
   horizontal specific force is rotor drag, ``f_xy = −μ·(Rᵀv)_xy`` (the thrust is along
   body z). This makes tilt and velocity observable without any aiding. ``μ`` (1/s)
-  differs per vehicle, so it is a state, started at ``drag`` ± ``drag_sigma_init``. The
+  differs per vehicle, so it is a state, estimated in logarithm (``λ = ln μ``, started
+  at ``ln drag`` ± ``drag_sigma_init``): a linear μ can be driven to zero by a velocity
+  error early in a flight (the body tilted on the ground before lift-off reads as
+  speed) and then, its variance spent, cannot come back, whereas a relative error is
+  as easy to undo as to make. The
   vertical velocity gets a weak zero prior (``vertical_velocity_prior``) so that it
   cannot wander into ``Rᵀv``. On the bench, carried by hand or on the ground between
   flights the accelerometer sees gravity and the model is wrong, so it runs only while
@@ -120,7 +124,7 @@ _GATE = (0.0, 10.828, 13.816, 16.266)
 #: A repeated magnetometer reading stops being used once the body has turned this far
 #: since it was taken (the heading error a stale reading would bring in) [rad].
 _MAG_STALE_RAD = 0.1 * math.pi / 180.0
-_NX = 10  # error state: δθ(3), δb(3), δv(3), δμ
+_NX = 10  # error state: δθ(3), δb(3), δv(3), δλ = δ ln μ
 _TH, _BI, _VE, _MU = 0, 3, 6, 9
 
 
@@ -162,7 +166,8 @@ class EskfParams(CommonParams):
                                       "seconds, so more than the white noise)")
     drag: float = param(0.0, "multirotor rotor-drag model: initial drag coefficient "
                              "μ [1/s] (f_xy = −μ·v_body,xy); 0 = not a multirotor")
-    drag_sigma_init: float = param(0.5, "initial standard deviation of μ [1/s]")
+    drag_sigma_init: float = param(0.7, "initial standard deviation of ln μ (μ is "
+                                        "estimated in logarithm: 0.7 is a factor of two)")
     drag_noise: float = param(0.3, "drag measurement noise density [m/s^2·sqrt(s)]")
     vertical_velocity_prior: float = param(1.0, "multirotor: vertical velocity ≈ 0 "
                                                 "pseudo-measurement density [m/s·sqrt(s)]")
@@ -398,7 +403,9 @@ def _inject(state: np.ndarray, params: np.ndarray) -> None:
         b = state[_core.B0 + j] + state[x + _BI + j]
         state[_core.B0 + j] = min(max(b, -bmax), bmax)
         state[_V + j] += state[x + _VE + j]
-    state[_MUS] = max(state[_MUS] + state[x + _MU], 0.0)
+    # μ is kept in logarithm: δλ = δ ln μ, so μ stays positive and a factor-two error is
+    # as easy to correct in either direction; the clip keeps one bad step from wiping it out
+    state[_MUS] *= math.exp(min(max(state[x + _MU], -1.0), 1.0))
     for j in range(_NX):
         state[x + j] = 0.0
 
@@ -640,7 +647,7 @@ def _velocity_aiding(state: np.ndarray, params: np.ndarray, T: float, r: tuple) 
 
 @_core.kernel
 def _drag_update(state: np.ndarray, params: np.ndarray, T: float, r: tuple) -> bool:
-    """Rotor drag: f̄_xy = −μ·(Rᵀv)_xy, linearised in δθ, δv and δμ."""
+    """Rotor drag: f̄_xy = −μ·(Rᵀv)_xy, linearised in δθ, δv and δλ = δ ln μ."""
     vx, vy, vz = state[_V], state[_V + 1], state[_V + 2]
     mu = state[_MUS]
     # body velocity u = Rᵀv; with R_true = (I + [δθ]×)R: u_true = u + Rᵀ[v]×δθ
@@ -661,7 +668,7 @@ def _drag_update(state: np.ndarray, params: np.ndarray, T: float, r: tuple) -> b
         state[base + _VE] = -mu * c0
         state[base + _VE + 1] = -mu * c1
         state[base + _VE + 2] = -mu * c2
-        state[base + _MU] = -(ux if row == 0 else uy)
+        state[base + _MU] = -mu * (ux if row == 0 else uy)  # ∂f/∂ln μ
     fx, fy = state[_FB] / state[_FB_T], state[_FB + 1] / state[_FB_T]
     rn = params[_I.drag_noise] ** 2 / T
     return _kalman_update(state, params, 2, fx + mu * ux, fy + mu * uy, 0.0, rn, rn, 0.0,
@@ -1178,7 +1185,7 @@ class Eskf(Estimator):
 
     @property
     def covariance(self) -> np.ndarray:
-        """Covariance of the error state [δθ (world), δb, δv, δμ], 10×10."""
+        """Covariance of the error state [δθ (world), δb, δv, δλ = δ ln μ], 10×10."""
         return self._state[_P:_P + _NX * _NX].reshape(_NX, _NX).copy()
 
     @property

@@ -18,7 +18,7 @@ each Kalman step's predicted and updated state and covariance (the "tap",
 ``estimators.eskf.TAP_*``). Memory: one tap row (237 floats) per Kalman step (100 per
 second), linear in the recording.
 
-Backward, on the error state δx = [δθ (world), δb, δv, δμ]: with the step-k posterior
+Backward, on the error state δx = [δθ (world), δb, δv, δλ = δ ln μ]: with the step-k posterior
 x̂ₖ⁺, Pₖ⁺, the step-(k+1) prediction x̂ₖ₊₁⁻, Pₖ₊₁⁻ and its transition Fₖ (rebuilt from the
 tap: δθ ← δθ − R·T·δb, δv ← δv − [ΔV]×·δθ),
 
@@ -195,8 +195,12 @@ def _backward(tap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         scale = 2.0 * math.atan2(vn, sgn * dq[0]) / vn * sgn if vn > 1e-12 else 2.0 * sgn
         for c in range(3):
             e[j, c] = scale * dq[1 + c]
-        for c in range(3, _NX):  # b, v, μ: plain differences (tap columns 4..10)
+        for c in range(3, _NX - 1):  # b, v: plain differences (tap columns 4..9)
             e[j, c] = d[j, c] + tap[j, post + c + 1] - tap[j, pri + c + 1]
+        # μ: the filter's error state is δ ln μ (0 while the drag model is off, μ = 0)
+        mu_post, mu_pri = tap[j, post + _NX], tap[j, pri + _NX]
+        log_ratio = math.log(mu_post / mu_pri) if mu_post > 0.0 and mu_pri > 0.0 else 0.0
+        e[j, _NX - 1] = d[j, _NX - 1] + log_ratio
         if tap[j, _BREAK] > 0.0:
             continue  # d[k] stays 0: nothing carried across a re-anchoring
         T = tap[j, _T]

@@ -97,3 +97,24 @@ def test_arducopter_sitl_flight_scored_against_simstate(name, total, inclination
     q_own, q_truth = reference_at(own, rec.t), reference_at(rec.reference, rec.t)
     both = np.all(np.isfinite(q_own), axis=1) & np.all(np.isfinite(q_truth), axis=1)
     assert score.total_deg <= rms_errors(q_own[both], q_truth[both]).total_deg
+
+
+def test_px4_live_session_kept_for_its_inclination():
+    """The live PX4 SIH session kept in tests/data/live because the live test failed on
+    it (tests/data/live/README.md): the body sat tilted on the ground before lift-off,
+    which the drag model read as speed. Replayed with the defaults it now gives
+    2.04 / 0.81 (total / inclination) against PX4's own 1.85 / 0.75; before μ was
+    estimated in logarithm, 2.10 / 0.93, beyond the live test's 1.2× PX4's inclination."""
+    path = Path(__file__).parent / "data" / "live" / "px4_sih_start_heading.tlog"
+    rec = load(path, reference="truth")
+    ev = evaluate(rec, ["eskf"])
+    assert ev.prepared.aid == "velocity" and ev.prepared.flight.known
+    score = ev.scores["eskf"]
+    assert score.samples > 0.95 * rec.n
+    assert score.total_deg < HEADROOM * 2.04, score.total_deg
+    assert score.inclination_deg < HEADROOM * 0.81, score.inclination_deg
+    own = load(path, reference="autopilot").reference
+    q_own, q_truth = reference_at(own, rec.t), reference_at(rec.reference, rec.t)
+    both = np.all(np.isfinite(q_own), axis=1) & np.all(np.isfinite(q_truth), axis=1)
+    px4 = rms_errors(q_own[both], q_truth[both])
+    assert score.inclination_deg <= 1.2 * px4.inclination_deg, (score, px4)

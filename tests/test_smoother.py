@@ -20,10 +20,10 @@ from replay import load
 from replay.evaluate import aiding_kwargs, evaluate, flight_kwargs, prepare
 
 #: (flight, smoothed total, smoothed inclination) measured with the defaults [deg]
-PX4_SMOOTHED = {"px4_sih/sih_aggressive.tlog": (0.809, 0.355),
-                "px4_sih/sih_box.tlog": (0.729, 0.400),
-                "sitl/px4_sih_touchdown.tlog": (0.966, 0.730),
-                "sitl/px4_sih_dashes.tlog": (0.923, 0.613)}
+PX4_SMOOTHED = {"px4_sih/sih_aggressive.tlog": (0.822, 0.360),
+                "px4_sih/sih_box.tlog": (0.718, 0.405),
+                "sitl/px4_sih_touchdown.tlog": (0.972, 0.729),
+                "sitl/px4_sih_dashes.tlog": (0.926, 0.605)}
 HEADROOM = 1.1
 SITL_DIR = Path(__file__).parent / "data" / "sitl"
 #: the issue's bound: smoothed total <= this x PX4's own attitude, every phase scored

@@ -91,7 +91,7 @@ def test_px4_flight_through_the_bridge(tmp_path):
     ours, theirs = armed_span_scores(bridge.record, sysid, "PX4")
     assert ours.total_deg <= TOTAL_VS_PX4 * theirs.total_deg
     # inclination alone: comparable, not always better (README: 0.87-1.01x of PX4's own
-    # over 9 PX4 flights, the worst with the whole suite running beside it)
+    # over 12 PX4 flights, the worst with the whole suite running beside it)
     assert ours.inclination_deg <= INCLINATION_VS_AUTOPILOT * theirs.inclination_deg
     # no absolute bound on the total: it is mostly heading, which follows what SIH's
     # simulated magnetometer says in that run (README: 0.76-3.07° over 15 flights, PX4's

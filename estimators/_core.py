@@ -295,14 +295,27 @@ def write_output(state: np.ndarray, common: np.ndarray, out: np.ndarray) -> None
 @kernel(inline="always")
 def user_to_internal(common: np.ndarray, vx: float, vy: float, vz: float) -> tuple:
     """R(W)ᵀ·v: a vector in the user's world frame (true north, NED or ENU) expressed in
-    the estimators' internal magnetic NED (W from ``output_rotation``)."""
+    the estimators' internal magnetic NED (W from ``output_rotation``).
+
+    A missing component stays missing without spoiling the others (GPS_RAW_INT has no
+    vertical speed): W keeps the vertical vertical, so the horizontal pair maps to the
+    horizontal pair and the vertical to the vertical. Without this, 0·NaN in the
+    product would turn a horizontal-only velocity into no velocity at all.
+    """
     w, x = common[P_OUT], common[P_OUT + 1]
     y, z = common[P_OUT + 2], common[P_OUT + 3]
-    return (
-        (1 - 2 * (y * y + z * z)) * vx + 2 * (x * y + w * z) * vy + 2 * (x * z - w * y) * vz,
-        2 * (x * y - w * z) * vx + (1 - 2 * (x * x + z * z)) * vy + 2 * (y * z + w * x) * vz,
-        2 * (x * z + w * y) * vx + 2 * (y * z - w * x) * vy + (1 - 2 * (x * x + y * y)) * vz,
-    )
+    horizontal = math.isfinite(vx) and math.isfinite(vy)
+    vertical = math.isfinite(vz)
+    hx, hy = (vx, vy) if horizontal else (0.0, 0.0)
+    hz = vz if vertical else 0.0
+    ix = (1 - 2 * (y * y + z * z)) * hx + 2 * (x * y + w * z) * hy + 2 * (x * z - w * y) * hz
+    iy = 2 * (x * y - w * z) * hx + (1 - 2 * (x * x + z * z)) * hy + 2 * (y * z + w * x) * hz
+    iz = 2 * (x * z + w * y) * hx + 2 * (y * z - w * x) * hy + (1 - 2 * (x * x + y * y)) * hz
+    if not horizontal:
+        ix = iy = math.nan
+    if not vertical:
+        iz = math.nan
+    return ix, iy, iz
 
 
 @kernel(inline="always")

@@ -314,6 +314,39 @@ def test_velocity_aiding_removes_the_vehicles_acceleration(name):
                                                              tilt["plain"].max())
 
 
+@pytest.mark.parametrize("world", ["NED", "ENU", "NED+declination"])
+@pytest.mark.parametrize("name", sorted(set(NAMES) - GYRO_ONLY))
+def test_horizontal_only_velocity_aids_in_every_world_frame(name, world):
+    """GPS_RAW_INT has no vertical speed (vz NaN): the horizontal pair must still aid,
+    in every output frame, as well as the full velocity does in this level manoeuvre
+    (re-expressing the velocity once multiplied the missing vertical into all axes)."""
+    rate = 200.0
+    gyr, acc, mag, truth, vel = _accelerating(rate)
+    v, age = _gps(vel, rate)
+    dec = math.radians(10.0) if world.endswith("declination") else 0.0
+    frame = world.split("+")[0]
+    if dec:
+        c, s = math.cos(dec), math.sin(dec)
+        v = np.stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]], 1)
+    if frame == "ENU":
+        v = v[:, [1, 0, 2]] * np.array([1.0, 1.0, -1.0])
+        truth = Q.ned_to_enu(truth)
+    if dec:
+        truth = Q.multiply(Q.from_axis_angle(np.array([0.0, 0.0, 1.0]), dec), truth)
+    horizontal = v.copy()
+    horizontal[:, 2] = np.nan
+    q0 = truth[0]
+
+    def peak_tilt(velocity):
+        q = estimators.batch(name, gyr, acc, mag, rate_hz=rate, q0=q0, world=frame,
+                             declination=dec, vel=velocity, vel_age=age)
+        return np.degrees(attitude_errors(q, truth).inclination).max()
+
+    plain, full, horiz = peak_tilt(None), peak_tilt(v), peak_tilt(horizontal)
+    assert horiz < plain / 3.0, (horiz, plain)
+    assert horiz <= 1.2 * full, (horiz, full)
+
+
 @pytest.mark.parametrize("name", NAMES)
 def test_batch_equals_update_with_aiding(name):
     rate = 200.0

@@ -156,6 +156,7 @@ class Trial:
     autopilot: np.ndarray | None = None  # (N, 4) the vehicle's own estimate
     airborne: np.ndarray | None = None  # (N,) 1/0/NaN: the flight state the vehicle tells
     phase: np.ndarray | None = None  # (N,) index into replay.flight.PHASES
+    imu_delay: float = 0.0  # s, the IMU stream's filter delay (imu.filter_delay)
 
     def score(self, q: np.ndarray) -> ErrorRms:
         return rms_errors(q[self.scored], self.truth[self.scored])
@@ -200,6 +201,7 @@ def sitl_trials(folders: list[Path]) -> list[Trial]:
     SIMSTATE), scored whole, with its flight state."""
     from replay.align import reference_at
     from replay.declination import resolve
+    from replay.evaluate import recording_imu_delay
     from replay.flight import track
     from replay.readers import load
 
@@ -223,7 +225,8 @@ def sitl_trials(folders: list[Path]) -> list[Trial]:
         out.append(Trial(name, "sitl", rec.gyr, rec.acc, rec.mag, rec.dt,
                          rec.rate_hz, "NED", truth, scored, resolve(rec).rad, runs,
                          q0=truth[first], autopilot=autopilot,
-                         airborne=fl.airborne if fl.known else None, phase=fl.phase))
+                         airborne=fl.airborne if fl.known else None, phase=fl.phase,
+                         imu_delay=recording_imu_delay(rec).seconds))
     return out
 
 
@@ -277,7 +280,8 @@ def run_estimator(trial: Trial, name: str, run: Run, **params: float) -> np.ndar
     known = estimators.estimator_class(name).param_names()
     vehicle = {k: v for k, v in run.params.items() if k in known}  # e.g. eskf's drag model
     est = estimators.create(name, rate_hz=trial.rate_hz, world=trial.world, q0=q0,
-                            declination=trial.declination, **{**vehicle, **params})
+                            declination=trial.declination, imu_delay=trial.imu_delay,
+                            **{**vehicle, **params})
     res = est.run(trial.gyr, trial.acc, trial.mag, dt=trial.dt, vel=run.vel,
                   vel_age=run.vel_age, airborne=trial.airborne)
     return res.q

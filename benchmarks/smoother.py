@@ -47,6 +47,7 @@ def smoothed(trial: Trial, **params: float):
     return smooth("eskf", trial.gyr, trial.acc, trial.mag, rate_hz=trial.rate_hz,
                   world=trial.world, dt=trial.dt, declination=trial.declination,
                   vel=run.vel, vel_age=run.vel_age, airborne=trial.airborne,
+                  imu_delay=trial.imu_delay,
                   **{**run.params, **params})
 
 

@@ -28,6 +28,22 @@ from . import quat as Q
 
 G = 9.80665
 _NO_VELOCITY = np.full(3, np.nan)  # update()'s vel when none is given (never written)
+#: Longest imu_delay taken [s]: a 2-pole low-pass at 2 Hz delays by 0.11 s; a longer delay
+#: is no filter a flight controller runs, and turning forward by it would amplify noise.
+MAX_IMU_DELAY_S = 0.1
+
+
+def turned_forward(q: np.ndarray, gyr: np.ndarray, bias: np.ndarray, delay: float
+                   ) -> np.ndarray:
+    """``q ⊗ exp((ω − b)·delay)``: attitudes (N, 4) integrated from IMU samples that are
+    ``delay`` seconds old (a sender's low-pass filter), carried forward to now at the body
+    rate each sample measured. A body rotation multiplies on the right, so this holds in
+    any output world frame. A sample without a finite rate is left as it is."""
+    if delay <= 0.0:
+        return q
+    rate = np.nan_to_num(np.asarray(gyr, dtype=float) - bias, nan=0.0, posinf=0.0,
+                         neginf=0.0)
+    return Q.multiply(q, Q.from_rotvec(rate * delay))
 
 
 def param(default: float, doc: str) -> Any:
@@ -49,18 +65,26 @@ class CommonParams:
                                     "declination) instead of magnetic north")
     aid_timeout: float = param(0.5, "velocity aiding: longest gap [s] between two velocity "
                                     "measurements (and longest age of one) that still aids")
+    imu_delay: float = param(0.0, "how much older [s] each IMU sample is than its stamp: "
+                                  "the group delay of a low-pass filter the sender applied "
+                                  "(ArduPilot's INS_GYRO_FILTER, imu.filter_delay); the "
+                                  "output is turned forward by the body rate times it")
 
 
 def _check_common(p: CommonParams) -> None:
     """ValueError for common parameters no estimator can work with (an infinite
     declination makes NaN quaternions, a negative max_dt skips every sample)."""
-    for name in ("acc_range", "gyr_range", "max_dt", "declination", "aid_timeout"):
+    for name in ("acc_range", "gyr_range", "max_dt", "declination", "aid_timeout",
+                 "imu_delay"):
         value = float(getattr(p, name))
         if not math.isfinite(value):
             raise ValueError(f"parameter {name!r} must be finite, got {value!r}")
     for name in ("acc_range", "gyr_range", "max_dt", "aid_timeout"):
         if not float(getattr(p, name)) > 0.0:
             raise ValueError(f"parameter {name!r} must be positive, got {getattr(p, name)!r}")
+    if not 0.0 <= float(p.imu_delay) <= MAX_IMU_DELAY_S:
+        raise ValueError(f"parameter 'imu_delay' must be within 0..{MAX_IMU_DELAY_S} s, "
+                         f"got {p.imu_delay!r}")
     if abs(float(p.declination)) > math.pi:
         raise ValueError(f"parameter 'declination' must be within ±pi rad, "
                          f"got {p.declination!r}")
@@ -200,6 +224,16 @@ class Estimator:
         self.params = params
         self._common[_core.P_OUT:_core.P_OUT + 4] = self.output_rotation
 
+    def set_imu_delay(self, delay_s: float) -> None:
+        """Carry the output forward by another ``imu_delay`` [s] from the next output on
+        (for a live source whose filter setting becomes known after it started: an
+        autopilot parameter). Only the output changes; nothing re-converges."""
+        params = dataclasses.replace(self.params, imu_delay=float(delay_s))
+        _check_common(params)
+        self._params_vec[:] = np.ascontiguousarray(self._pack_params(params),
+                                                   dtype=float).ravel()
+        self.params = params
+
     def set_flight_state(self, airborne: bool | None) -> None:
         """What the vehicle says it is doing from the next sample on: True in the air
         (taking off, flying, landing), False on the ground (disarmed, landed, carried by
@@ -244,12 +278,13 @@ class Estimator:
         self._state[:] = state
         self._counters[:] = 0.0
         self._last_flags = 0
+        self._last_gyr: object = np.zeros(3)  # the last sample's gyro, for imu_delay
 
     @property
     def q(self) -> np.ndarray:
         """Current attitude [w, x, y, z], body -> world."""
         type(self)._write_output(self._state, self._common, self._out)
-        return self._out.copy()
+        return self._turned_forward(self._out.copy())
 
     @property
     def bias(self) -> np.ndarray:
@@ -296,7 +331,20 @@ class Estimator:
         if flags < 0:
             flags = self._update_converted(gyr, acc, mag, step_dt, v, vel_age)
         self._last_flags = flags
+        if self.params.imu_delay > 0.0:
+            self._last_gyr = np.array(gyr, dtype=np.float64)  # a copy: callers reuse buffers
+            return self._turned_forward(self._out.copy())
+        self._last_gyr = gyr  # (per-sample cost: copied only when it is used)
         return self._out.copy()
+
+    def _turned_forward(self, q: np.ndarray) -> np.ndarray:
+        """One output carried forward by ``imu_delay`` at the last sample's rate."""
+        if self.params.imu_delay <= 0.0:
+            return q
+        gyr = np.asarray(self._last_gyr, dtype=np.float64)
+        return turned_forward(q[None, :], gyr[None, :],
+                              self._state[None, _core.B0:_core.B0 + 3],
+                              self.params.imu_delay)[0]
 
     def _update_converted(self, gyr: object, acc: object, mag: object, dt: object,
                           vel: object, vel_age: object) -> int:
@@ -363,6 +411,9 @@ class Estimator:
             type(self)._run_batch(self._state, self._params_vec, self._common, G_, A_, M_,
                                   has_mag, dts, self._counters, q_out, b_out, f_out, V_, ages)
             self._last_flags = int(f_out[-1])
+            self._last_gyr = G_[-1].copy()
+            if self.params.imu_delay > 0.0:
+                q_out = turned_forward(q_out, G_, b_out, self.params.imu_delay)
         return BatchResult(q=q_out, bias=b_out, flags=f_out)
 
     def _run_by_flight_state(self, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None,

@@ -81,6 +81,8 @@ the velocity information), the bias random walk and a velocity random walk.
   A magnetometer reading is older than the gyro sample it comes with (its own
   filter, slower sampling): in a fast turn a few milliseconds are degrees of heading,
   so the reading is turned back by the rotation since (``mag_delay`` × the body rate).
+  Behind a sender's IMU low-pass (``imu_delay``, ArduPilot) the gyro is the older one:
+  the reading is then turned by (``mag_delay`` − ``imu_delay``) × the rate, forward.
 
 Every Kalman step leaves its prediction and its result (state, covariance, the
 transition's ingredients) in the state's ``TAP`` block, and flags the re-anchorings done
@@ -195,9 +197,10 @@ class EskfParams(CommonParams):
                                             "Markov chain's switching rate)")
     mag_noise: float = param(0.25, "magnetometer heading noise density [rad·sqrt(s)]")
     mag_delay: float = param(0.01, "how much older [s] a magnetometer reading is than the "
-                                  "gyro sample it comes with (a magnetometer's filter and "
-                                  "slower sampling): the reading is turned back by the "
-                                  "rotation since")
+                                  "instant its IMU message describes (a magnetometer's "
+                                  "filter and slower sampling): the reading is turned "
+                                  "back by the rotation since (less imu_delay: the gyro "
+                                  "behind a sender's low-pass is older still)")
     mag_norm_th: float = param(0.1, "magnetic disturbance: relative field-norm deviation")
     mag_dip_th: float = param(10.0 * _DEG, "magnetic disturbance: dip-angle deviation [rad]")
     mag_ref_time: float = param(5.0, "a field consistent this long [s] becomes the first "
@@ -752,8 +755,8 @@ def _mag_reading_now(state: np.ndarray, params: np.ndarray) -> tuple:
     mx, my, mz = state[_MAG], state[_MAG + 1], state[_MAG + 2]
     wx, wy, wz = state[_MAG_W], state[_MAG_W + 1], state[_MAG_W + 2]
     rate = math.sqrt(wx * wx + wy * wy + wz * wz)
-    angle = params[_I.mag_delay] * rate
-    if angle <= 1e-12:
+    angle = params[_I.mag_delay] * rate  # < 0: a reading newer than the gyro, turned on
+    if abs(angle) <= 1e-12:
         return mx, my, mz
     kx, ky, kz = wx / rate, wy / rate, wz / rate
     c, s = math.cos(angle), -math.sin(angle)
@@ -1168,7 +1171,11 @@ class Eskf(Estimator):
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"parameter {f!r} must be a finite number >= 0, got "
                                  f"{value!r}")
-        return np.array([float(getattr(p, f)) for f in _PARAM_FIELDS])
+        packed = np.array([float(getattr(p, f)) for f in _PARAM_FIELDS])
+        # The filter lives at the gyro's time, imu_delay behind now; a magnetometer that
+        # is not low-passed with the gyro (ArduPilot's compass) is that much newer than it.
+        packed[_I.mag_delay] = p.mag_delay - p.imu_delay
+        return packed
 
     def _init_private(self, state: np.ndarray, p: EskfParams) -> None:
         _init_covariance(state, self._params_vec)

@@ -44,7 +44,7 @@ import numpy as np
 from numba import njit
 
 from . import _core, eskf
-from .base import BatchResult, SampleCounters
+from .base import BatchResult, SampleCounters, turned_forward
 
 _NX = 10
 _N = eskf.TAP_NOMINAL
@@ -121,16 +121,18 @@ def smooth(name: str, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray | None =
         est = create(name, rate_hz=rate_hz, world=world, q0=q0, **params)
     if n:
         est._last_flags = int(f[-1])
-    online = BatchResult(q=q, bias=b, flags=f)
+    delay = est.params.imu_delay  # both outputs are carried forward like Estimator.run's
+    online = BatchResult(q=turned_forward(q, G, b, delay), bias=b, flags=f)
     tap, at = tap[:k], at[:k]
     if k < 2:
-        return SmoothResult(q=q.copy(), bias=b.copy(), online=online, counters=est.counters,
-                            steps=k, breaks=0)
+        return SmoothResult(q=online.q.copy(), bias=b.copy(), online=online,
+                            counters=est.counters, steps=k, breaks=0)
     d, e = _backward(tap)
     t = np.cumsum(dts) if dts.shape[0] == n else dts[0] * np.arange(1, n + 1)
     w = est._common[_core.P_OUT:_core.P_OUT + 4].copy()
     qs, bs = _apply(q, b, at, d, e, t, w)
-    return SmoothResult(q=qs, bias=bs, online=online, counters=est.counters, steps=k,
+    return SmoothResult(q=turned_forward(qs, G, bs, delay), bias=bs, online=online,
+                        counters=est.counters, steps=k,
                         breaks=int((tap[:, eskf.TAP_BREAK] > 0.0).sum()))
 
 

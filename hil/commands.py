@@ -21,7 +21,8 @@
 * any other command: COMMAND_ACK MAV_RESULT_UNSUPPORTED.
 * PARAM_REQUEST_READ / PARAM_REQUEST_LIST: the declination parameter (PX4
   ``EKF2_MAG_DECL`` in degrees, ArduPilot ``COMPASS_DEC`` in radians, both REAL32) from
-  the emulator's World Magnetic Model field; unknown names get no answer (MAVLink's
+  the emulator's World Magnetic Model field, and the personality's other parameters
+  (ArduPilot ``INS_GYRO_FILTER``); unknown names get no answer (MAVLink's
   parameter protocol), and the seeds' board has no parameters.
 
 Messages for another system or component are ignored, like on a real autopilot.
@@ -78,6 +79,7 @@ class CommandHandler:
             value = (declination_deg if who.declination_unit == "deg"
                      else math.radians(declination_deg))
             self.params[who.declination_param] = value
+        self.params.update(who.params)
 
     def handle(self, msg) -> list:
         """Replies (pymavlink messages) to one received message."""

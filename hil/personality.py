@@ -17,7 +17,8 @@ the real ones do (PX4 and ArduPilot behaviour taken from their MAVLink sources):
 * ``ardupilot`` — MAV_AUTOPILOT_ARDUPILOTMEGA: RAW_IMU in ArduPilot's units (mG, mrad/s,
   mGauss, FRD) and SCALED_IMU2, ATTITUDE from its onboard filter; unknown message ids
   are MAV_RESULT_FAILED; intervals are kept in whole milliseconds (at least 1 ms).
-  Declination parameter ``COMPASS_DEC`` [rad].
+  Declination parameter ``COMPASS_DEC`` [rad]; ``INS_GYRO_FILTER`` 0 (its samples
+  are sent as measured, where a real ArduPilot low-passes them: imu.filter_delay).
 
 Every personality also sends SCALED_PRESSURE, the GPS messages when a GPS is fitted,
 and the emulator's HIL_STATE_QUATERNION truth.
@@ -80,6 +81,8 @@ class Personality:
     #: HEARTBEAT system_status STANDBY on the ground, ACTIVE in the air (ArduPilot),
     #: instead of STANDBY disarmed, ACTIVE armed (PX4)
     status_follows_landed: bool = False
+    #: other parameters it answers (name -> value, REAL32)
+    params: tuple[tuple[str, float], ...] = ()
 
     @property
     def streams(self) -> tuple[str, ...]:
@@ -105,7 +108,9 @@ ARDUPILOT = Personality(
     defaults={"RAW_IMU": 0.02, "SCALED_IMU2": 0.02, "ATTITUDE": 0.02},
     refused_result=mavlink.MAV_RESULT_FAILED, declination_param="COMPASS_DEC",
     declination_unit="rad", whole_ms=True, request_refused_result=mavlink.MAV_RESULT_FAILED,
-    ack_before_requested=True, status_follows_landed=True)
+    ack_before_requested=True, status_follows_landed=True,
+    # the emulated sensors' samples go out as measured, not low-passed: the filter is off
+    params=(("INS_GYRO_FILTER", 0.0),))
 
 PERSONALITIES = {p.name: p for p in (STM32, PX4, ARDUPILOT)}
 

@@ -140,6 +140,7 @@ class Recording:
     velocity: Velocity | None = None
     mav_type: int | None = None  # MAVLink MAV_TYPE of the vehicle, None when unknown
     mav_type_source: str = ""  # where it came from (HEARTBEAT, parameter MAV_TYPE)
+    mav_autopilot: int | None = None  # MAVLink MAV_AUTOPILOT of the IMU's sender (HEARTBEAT)
     #: the vehicle's own reports of its flight state, in time order (replay.flight)
     state_events: tuple[StateEvent, ...] = ()
     state_events_source: str = ""  # the messages / topics they came from

@@ -14,6 +14,8 @@ from estimators import metrics
 from estimators import quat as Q
 from estimators.spec import EstimatorSpec
 from estimators.vehicle_model import model_params
+from imu import filter_delay
+from imu.filter_delay import FilterDelay
 from imu.flight_state import state_name
 from imu.vehicles import type_name
 
@@ -52,6 +54,9 @@ class Prepared:
     aid_note: str = ""  # what aiding the log offers and what is done with it
     unscored: str = ""  # why nothing can be scored ("" when something can)
     flight: FlightTrack | None = None  # the vehicle's flight state and phases per sample
+    #: how old the IMU samples are when sent (an autopilot's low-pass filter): the
+    #: estimators' ``imu_delay``
+    imu_delay: FilterDelay = filter_delay.NONE
 
 
 def prepare(rec: Recording, method: str = "slerp", max_gap: float = DEFAULT_MAX_GAP_S,
@@ -60,10 +65,11 @@ def prepare(rec: Recording, method: str = "slerp", max_gap: float = DEFAULT_MAX_
     dec = resolve(rec, declination_deg)
     aid, aid_note = _choose_aid(rec, aid)
     flight = track(rec)
+    delay = recording_imu_delay(rec)
     if rec.reference is None:
         return Prepared(rec, None, np.zeros(rec.n, dtype=bool), dec, aid, aid_note,
                         "no reference attitude in the file: nothing to score against",
-                        flight)
+                        flight, delay)
     q_ref = reference_at(rec.reference, rec.t, method, max_gap)
     scored = np.all(np.isfinite(q_ref), axis=1)
     if rec.score_mask is not None:
@@ -76,7 +82,13 @@ def prepare(rec: Recording, method: str = "slerp", max_gap: float = DEFAULT_MAX_
                f"{rec.t[-1]:.1f} s) with gaps under {max_gap:g} s")
         if r.t.size and rec.score_mask is not None:
             why = f"no sample with a reference inside the file's score mask; {why}"
-    return Prepared(rec, q_ref, scored, dec, aid, aid_note, why, flight)
+    return Prepared(rec, q_ref, scored, dec, aid, aid_note, why, flight, delay)
+
+
+def recording_imu_delay(rec: Recording) -> FilterDelay:
+    """The IMU stream's filter delay (imu.filter_delay) from the log's autopilot,
+    parameters and vehicle type."""
+    return filter_delay.imu_filter_delay(rec.mav_autopilot, rec.params, rec.mav_type)
 
 
 def vehicle_note(rec: Recording) -> str:
@@ -173,8 +185,9 @@ def run_inputs(prep: Prepared, spec: EstimatorSpec, init: str = "sensors"
         q0 = prep.q_ref[start]
     elif init != "sensors":
         raise ValueError(f"init must be 'sensors' or 'reference', got {init!r}")
-    params = {"declination": prep.declination.rad, **model_params(spec.name, rec.mav_type),
-              **spec.params}  # -e ...:declination=, :drag= win
+    params = {"declination": prep.declination.rad, "imu_delay": prep.imu_delay.seconds,
+              **model_params(spec.name, rec.mav_type),
+              **spec.params}  # -e ...:declination=, :imu_delay=, :drag= win
     return slice(start, None), q0, params
 
 
@@ -403,6 +416,8 @@ class Evaluation:
             "board": rec.board,
             "declination_deg": self.prepared.declination.deg,
             "declination_source": self.prepared.declination.source,
+            "imu_delay_ms": round(self.prepared.imu_delay.ms, 3),
+            "imu_delay_source": self.prepared.imu_delay.source,
             "aiding": self.prepared.aid,
             "aiding_note": self.prepared.aid_note,
             "vehicle": vehicle_note(self.prepared.recording),

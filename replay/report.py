@@ -85,6 +85,7 @@ def _info_html(ev: Evaluation) -> str:
          f"{ref.kind} ({ref.source}), {ref.north} north" + (f"; {ref.timing}" if ref.timing
                                                             else "")),
         ("declination used", prep.declination.describe()),
+        ("IMU delay", f"{prep.imu_delay.ms:.1f} ms ({prep.imu_delay.source})"),
         ("aiding", prep.aid_note),
         ("vehicle", vehicle_note(prep.recording)),
         ("flight state", prep.flight.note() if prep.flight is not None else "not read"),
@@ -106,7 +107,8 @@ def _params_html(ev: Evaluation) -> str:
     """Every estimator's complete parameter set (defaults included), angles in degrees."""
     rows = []
     for label, run in ev.runs.items():
-        given = {"declination": ev.prepared.declination.rad, **run.spec.params}
+        given = {"declination": ev.prepared.declination.rad,
+                 "imu_delay": ev.prepared.imu_delay.seconds, **run.spec.params}
         params = dataclasses.asdict(
             estimators.estimator_class(run.spec.name).make_params(**given))
         cls = estimators.estimator_class(run.spec.name)

@@ -32,13 +32,31 @@ def reference_on(t_ref: np.ndarray, q_ref: np.ndarray, t: np.ndarray
 
 def run_and_score(name: str, t: np.ndarray, gyr: np.ndarray, acc: np.ndarray,
                   mag: np.ndarray | None, ref: Rotation, valid: np.ndarray,
-                  world: str = "NED", declination_deg: float = 0.0) -> dict[str, float]:
-    """RMS total/heading/inclination [deg] and Euler-angle RMS of estimator ``name``."""
+                  world: str = "NED", declination_deg: float = 0.0,
+                  imu_delay_s: float = 0.0) -> dict[str, float]:
+    """RMS total/heading/inclination [deg] and Euler-angle RMS of estimator ``name``;
+    ``imu_delay_s``: the sender's low-pass delay, passed to the estimator (which then
+    also takes its magnetometer as that much newer) and carried forward here."""
     dt = np.diff(t, prepend=np.nan)
     rate = 1.0 / np.median(np.diff(t))
     dt[0] = 1.0 / rate
-    res = estimators.run(name, gyr, acc, mag, rate_hz=rate, world=world, dt=dt,
-                         declination=np.radians(declination_deg))
+    if imu_delay_s > 0.0:
+        # the estimate itself, then turned on by the body rate over the delay
+        est_cls = estimators.estimator_class(name)
+        inner = est_cls(rate_hz=rate, world=world, declination=np.radians(declination_deg),
+                        imu_delay=imu_delay_s)
+        res = inner.run(gyr, acc, mag, dt=dt)
+        own = ({"mag_delay": est_cls.Params().mag_delay - imu_delay_s}
+               if "mag_delay" in est_cls.param_names() else {})
+        base = estimators.run(name, gyr, acc, mag, rate_hz=rate, world=world, dt=dt,
+                              declination=np.radians(declination_deg), **own)
+        forward = Rotation.from_rotvec(np.nan_to_num(gyr - base.bias) * imu_delay_s)
+        q = (wxyz_to_rot(base.q) * forward).as_quat()[:, [3, 0, 1, 2]]
+        assert np.allclose(np.abs(np.sum(q * res.q, axis=1)), 1.0, atol=1e-9)
+        res = type(res)(q=q, bias=base.bias, flags=base.flags)
+    else:
+        res = estimators.run(name, gyr, acc, mag, rate_hz=rate, world=world, dt=dt,
+                             declination=np.radians(declination_deg))
     keep = valid & ((res.flags & 1) != 0)
     est = wxyz_to_rot(res.q[keep])
     err = (est * ref[keep].inv()).as_quat()  # x, y, z, w

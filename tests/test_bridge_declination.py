@@ -177,3 +177,18 @@ def test_declination_options_are_degrees_under_both_names():
         cfg = config_from_args(args, demo=False)
         assert cfg.declination_deg == -4.5 and cfg.aiding is False
         assert (cfg.emulator_autopilot, cfg.emulator_gps) == ("ardupilot", True)
+
+
+@async_test
+async def test_ardupilot_gyro_filter_parameter_is_read_with_the_declination():
+    """The ArduPilot personality answers COMPASS_DEC and INS_GYRO_FILTER (0: it sends
+    its samples as measured), so the estimate is not carried forward by ArduPilot's
+    default 11.25 ms (imu.filter_delay), and is as good as the same flight from the
+    stm32 board, which has no filter to ask about."""
+    ap, status, _, _ = await fly("ardupilot", gps=False)
+    assert status["declination"]["detail"] == "COMPASS_DEC"
+    assert status["imu_delay"] == {"ms": 0.0, "source": "INS_GYRO_FILTER 0 (filter off)"}
+    board, plain, _, _ = await fly("stm32", gps=False,
+                                   declination_deg=emulator_declination_deg())
+    assert plain["imu_delay"] == {"ms": 0.0, "source": "none"}
+    assert abs(ap.total_deg - board.total_deg) < 0.2, (ap, board)

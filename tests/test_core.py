@@ -223,7 +223,7 @@ def test_parameter_values_are_checked():
     with pytest.raises(ValueError, match="max_dt"):
         estimators.create("quaternion", max_dt=float("nan"))
     assert set(estimators.estimator_class("quaternion").param_docs()) == {
-        "acc_range", "gyr_range", "max_dt", "declination", "aid_timeout", "exact"}
+        "acc_range", "gyr_range", "max_dt", "declination", "aid_timeout", "imu_delay", "exact"}
 
 
 @pytest.mark.parametrize("world", ["NED", "ENU"])

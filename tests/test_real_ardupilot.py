@@ -69,6 +69,9 @@ def test_arducopter_flight_through_the_bridge(tmp_path):
     assert st["flags"]["stuck"] == 0  # its rounded units repeat at rest: not a stuck sensor
     # velocity aiding from what it sends
     assert st["aiding"]["used"] > 100, st["aiding"]
+    # its RAW_IMU is its 20 Hz low-passed gyro: the estimate is carried forward by the
+    # filter's delay, read from its own parameter (imu.filter_delay)
+    assert st["imu_delay"] == {"ms": 11.25, "source": "INS_GYRO_FILTER 20 Hz"}
     # the flight state from its landed state; both references compared live
     check_flight_state_and_references(st, "SIMSTATE")
     # what the bridge sent reached ArduPilot's GCS link

@@ -59,6 +59,7 @@ def test_two_vehicles_one_port_and_a_restart(tmp_path):
             assert v["declination"]["source"] == "parameter", v["declination"]
             assert v["declination"]["deg"] == pytest.approx(math.degrees(DECLINATION_RAD[k]),
                                                             abs=0.01)
+            assert v["imu_delay"] == {"ms": 11.25, "source": "INS_GYRO_FILTER 20 Hz"}
         # an autopilot that has run a while (a fresh SITL restarted within seconds
         # repeats its own stamps and readings: indistinguishable from an outage)
         bridge.wait_for(lambda st: st["vehicles"]["2"]["time_s"] > 8.0, 10, "8 s of uptime")

@@ -93,11 +93,13 @@ def test_tlog_replay_matches_independent_scoring(data_dir):
 
     path = data_dir / "logs" / "dronekit_flight_replay_flight.tlog"
     conn = mavutil.mavlink_connection(str(path))
-    imu, att, dec = [], [], []
+    imu, att, dec, cutoff = [], [], [], []
     while (msg := conn.recv_match(type=["RAW_IMU", "ATTITUDE", "PARAM_VALUE"])) is not None:
         if msg.get_type() == "PARAM_VALUE":
             if msg.param_id == "COMPASS_DEC":
                 dec.append(msg.param_value)
+            if msg.param_id == "INS_GYRO_FILTER":
+                cutoff.append(msg.param_value)
             continue
         (imu if msg.get_type() == "RAW_IMU" else att).append(msg)
     t_all = np.array([m.time_usec for m in imu]) / 1e6
@@ -115,9 +117,12 @@ def test_tlog_replay_matches_independent_scoring(data_dir):
     euler = np.array([[m.yaw, m.pitch, m.roll] for m in att])
     q_ref = Rotation.from_euler("ZYX", euler).as_quat()[:, [3, 0, 1, 2]]
     ref, inside = reference_on(t_ref, q_ref, t)
-    # ArduPilot's COMPASS_DEC is in radians
+    # ArduPilot's COMPASS_DEC is in radians; its RAW_IMU is the gyro after its
+    # INS_GYRO_FILTER 2-pole Butterworth low-pass, sqrt(2)/(2 pi f) late
+    assert cutoff[-1] == 20.0
     oracle = run_and_score(ESTIMATOR, t, gyr, acc, mag, ref, inside,
-                           declination_deg=np.degrees(dec[-1]))
+                           declination_deg=np.degrees(dec[-1]),
+                           imu_delay_s=np.sqrt(2.0) / (2.0 * np.pi * cutoff[-1]))
 
     rec = replay.load(path)
     assert rec.source == "RAW_IMU" and rec.n == len(t) and rec.board == "ardupilot"
@@ -128,6 +133,7 @@ def test_tlog_replay_matches_independent_scoring(data_dir):
     ev = replay.evaluate(rec, [ESTIMATOR], min_rate_hz=0.0, **UNAIDED)
     assert ev.reference_kind == "autopilot"
     assert ev.prepared.declination.source == "vehicle parameter COMPASS_DEC"
+    assert ev.prepared.imu_delay.source == "INS_GYRO_FILTER 20 Hz"
     assert_scores_match(ev.scores[ESTIMATOR], oracle)
     # Level on the ground: the accelerometer reads about +1 g upward (-z in FRD).
     assert np.median(rec.acc[:20, 2]) == pytest.approx(-9.8, abs=0.5)

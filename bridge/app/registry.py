@@ -13,6 +13,7 @@ from collections.abc import Callable
 
 from ..vehicle.aiding import VelocityAiding
 from ..vehicle.declination import Declination
+from ..vehicle.imu_delay import ImuDelay
 from ..vehicle.ingest import IMU_MESSAGE_IDS, SourceKey
 from ..vehicle.negotiate import StreamNegotiation
 from ..vehicle.vehicle import HEARTBEAT, PROVISIONAL, Vehicle
@@ -59,7 +60,8 @@ class VehicleRegistry:
             aiding=VelocityAiding(self.cfg.aid_max_age_s),
             negotiation=StreamNegotiation(sysid, self.cfg.imu_rate, self.forced_imu,
                                           self.cfg.aiding),
-            declination=Declination(sysid, self.cfg.declination_deg))
+            declination=Declination(sysid, self.cfg.declination_deg),
+            imu_delay=ImuDelay(sysid))
         self.admission.admit_vehicle(sysid)
         log.info("vehicle %d admitted (%s)", sysid, how)
         return v

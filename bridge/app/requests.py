@@ -42,8 +42,10 @@ class StreamRequester:
         req = vehicle.negotiation.next_send(now)
         if req is not None:
             self._send_interval(vehicle, req)
-        name = vehicle.declination.param_to_send(now)
-        if name is not None:
+        for name in (vehicle.declination.param_to_send(now),
+                     vehicle.imu_delay.param_to_send(now)):
+            if name is None:
+                continue
             read = mavlink.MAVLink_param_request_read_message(
                 vehicle.sysid, vehicle.autopilot_compid, name.encode(), -1)
             vehicle.link.send_to(read, vehicle.sysid, self.component_id, vehicle.address)

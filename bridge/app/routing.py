@@ -126,11 +126,15 @@ class MessageRouter:
             self._position(vehicle, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
 
     def _param(self, vehicle: Vehicle, msg: MAVLinkMessage) -> None:
-        """A parameter of the autopilot: its declination, when it is the one asked."""
+        """A parameter of the autopilot: its declination or gyro filter, when it is the
+        one asked."""
         name = msg.param_id if isinstance(msg.param_id, str) else \
             msg.param_id.decode(errors="replace")
-        if vehicle.declination.on_param(name.rstrip("\x00"), float(msg.param_value)):
+        name = name.rstrip("\x00")
+        if vehicle.declination.on_param(name, float(msg.param_value)):
             self.pipeline.configure(vehicle.sysid, declination_rad=vehicle.declination.rad)
+        if vehicle.imu_delay.on_param(name, float(msg.param_value)):
+            self.pipeline.configure(vehicle.sysid, imu_delay_s=vehicle.imu_delay.seconds)
 
     def _truth(self, vehicle: Vehicle, msg: MAVLinkMessage, compid: int,
                arrival: float) -> None:
@@ -175,8 +179,10 @@ class MessageRouter:
         was_armed = vehicle.flight.armed
         vehicle.flight.on_heartbeat(now, msg.base_mode, msg.autopilot)
         if was_armed and vehicle.flight.armed is False and vehicle.autopilot is not None:
-            # PX4 saves the declination its EKF learned when it disarms: read it again
+            # PX4 saves the declination its EKF learned when it disarms: read it again;
+            # and the gyro filter, which a user may change between flights
             vehicle.declination.plan(vehicle.autopilot)
+            self._plan_imu_delay(vehicle, vehicle.autopilot)
         self._flight_state(vehicle)
         if msg.type != vehicle.mav_type:
             if vehicle.mav_type is not None:
@@ -226,6 +232,12 @@ class MessageRouter:
                     vehicle.primary = None
         vehicle.negotiation.start(autopilot)
         vehicle.declination.plan(autopilot)
+        self._plan_imu_delay(vehicle, autopilot)
+
+    def _plan_imu_delay(self, vehicle: Vehicle, autopilot: int) -> None:
+        """The autopilot's default IMU delay now, its parameter asked for."""
+        if vehicle.imu_delay.plan(autopilot, vehicle.mav_type):
+            self.pipeline.configure(vehicle.sysid, imu_delay_s=vehicle.imu_delay.seconds)
 
     def _command_ack(self, vehicle: Vehicle, msg: MAVLinkMessage, compid: int) -> None:
         """COMMAND_ACK for one of our SET_MESSAGE_INTERVAL requests: on to the next."""

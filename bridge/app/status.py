@@ -126,6 +126,7 @@ class StatusReporter:
             "imu_stream": vehicle.negotiation.status(),
             "board": self.ingest.board_of(vehicle.sysid).name,
             "declination": vehicle.declination.status(),
+            "imu_delay": vehicle.imu_delay.status(),
             "vehicle": self._vehicle_description(vehicle),
             "aiding": {**vehicle.aiding.status(), "enabled": self.cfg.aiding,
                        "aided_samples": src.aided if src is not None else 0},

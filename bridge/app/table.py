@@ -131,6 +131,9 @@ def vehicle_lines(sysid: int, st: dict[str, Any]) -> list[str]:
     imu = (f"       IMU {s.get('message') or '-'} {achieved}/{asked:.4g} Hz{jitter_text} "
            f"({s.get('state', '-')}{refused})"
            f"{', board ' + st.get('board', '-') if s.get('message') == 'RAW_IMU' else ''}{flag}")
+    delay = st.get("imu_delay") or {}
+    if delay.get("ms"):
+        imu += f", {delay['ms']:.1f} ms late ({delay.get('source', '')})"
     d = st.get("declination", {})
     a = st.get("aiding", {})
     if not a.get("enabled", True):

@@ -43,6 +43,7 @@ class VehicleSetup:
     declination_rad: float = 0.0
     model: str = UNKNOWN
     airborne: bool | None = None  # what the vehicle says it is doing (imu.flight_state)
+    imu_delay_s: float = 0.0  # how old its IMU samples are (imu.filter_delay)
 
 
 @dataclass(slots=True)
@@ -63,7 +64,8 @@ class SourcePipeline:
 
     def __init__(self, key: SourceKey, specs: list[EstimatorSpec], rate_hz: float,
                  history: int, declination_rad: float = 0.0, settle_s: float = 1.0,
-                 model: str = UNKNOWN, airborne: bool | None = None) -> None:
+                 model: str = UNKNOWN, airborne: bool | None = None,
+                 imu_delay_s: float = 0.0) -> None:
         self.key = key
         self.airborne = airborne
         self.specs = specs
@@ -74,6 +76,7 @@ class SourcePipeline:
         self._restart_pending = False
         self.labels = [s.label for s in specs]
         self.declination_rad = declination_rad
+        self.imu_delay_s = imu_delay_s
         self.model = model
         self.estimators = self._create()
         self.history = {label: TimeRing(history, 4) for label in self.labels}
@@ -84,7 +87,8 @@ class SourcePipeline:
     def _create(self) -> list[estimators.Estimator]:
         # The estimators turn their magnetic-north attitude to true north themselves.
         created = [s.create(self.rate_hz, declination=self.declination_rad,
-                            **model_defaults(s, self.model)) for s in self.specs]
+                            imu_delay=self.imu_delay_s, **model_defaults(s, self.model))
+                   for s in self.specs]
         for est in created:
             est.set_flight_state(self.airborne)
         return created
@@ -106,6 +110,14 @@ class SourcePipeline:
         self.declination_rad = declination_rad
         for est in self.estimators:
             est.set_declination(declination_rad)
+
+    def set_imu_delay(self, delay_s: float) -> None:
+        """Carry the output forward by another IMU delay from now on, estimate kept;
+        not for an estimator whose ``imu_delay`` the user set (``-e NAME:imu_delay=``)."""
+        self.imu_delay_s = delay_s
+        for spec, est in zip(self.specs, self.estimators, strict=True):
+            if "imu_delay" not in spec.params:
+                est.set_imu_delay(delay_s)
 
     def set_model(self, model: str) -> None:
         """Rebuild the estimators for another vehicle model; the estimate restarts with
@@ -195,11 +207,14 @@ class Pipeline:
         return setup
 
     def configure(self, sysid: int, *, declination_rad: float | None = None,
-                  model: str | None = None) -> None:
-        """Tell a vehicle's estimators (present and future) its declination / model."""
+                  model: str | None = None, imu_delay_s: float | None = None) -> None:
+        """Tell a vehicle's estimators (present and future) its declination / model /
+        IMU delay."""
         setup = self.setup(sysid)
         if declination_rad is not None:
             setup.declination_rad = declination_rad
+        if imu_delay_s is not None:
+            setup.imu_delay_s = imu_delay_s
         if model is not None:
             setup.model = model
         for key, src in self.sources.items():
@@ -207,6 +222,8 @@ class Pipeline:
                 continue
             if src.declination_rad != setup.declination_rad:
                 src.set_declination(setup.declination_rad)
+            if src.imu_delay_s != setup.imu_delay_s:
+                src.set_imu_delay(setup.imu_delay_s)
             src.set_model(setup.model)
 
     def set_flight_state(self, sysid: int, airborne: bool | None) -> None:
@@ -223,7 +240,7 @@ class Pipeline:
             setup = self.setup(sample.key.sysid)
             src = SourcePipeline(sample.key, self.specs, self.rate_hz, self.history,
                                  setup.declination_rad, self.settle_s, setup.model,
-                                 setup.airborne)
+                                 setup.airborne, setup.imu_delay_s)
             self.sources[sample.key] = src
         return src.process(sample, vel, vel_age)
 

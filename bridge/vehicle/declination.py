@@ -20,12 +20,13 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from imu import geomag
 
 from ..wire.mav import mavlink
+from .param_query import ParamQuery
 
 log = logging.getLogger(__name__)
 
@@ -33,8 +34,6 @@ OPTION, PARAMETER, WMM, NONE = "option", "parameter", "wmm", "none"
 #: Declination parameter of each autopilot and its unit.
 PARAMETERS = {mavlink.MAV_AUTOPILOT_PX4: ("EKF2_MAG_DECL", "deg"),
               mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: ("COMPASS_DEC", "rad")}
-PARAM_TIMEOUT_S = 1.0
-PARAM_TRIES = 3
 #: The WMM is evaluated again after the vehicle moved this far [deg of lat/lon]
 #: (~50 km; the declination changes by well under 0.1° over such a distance at most
 #: latitudes).
@@ -51,9 +50,7 @@ class Declination:
     source: str = NONE
     detail: str = ""
     param: tuple[str, str] | None = None  # (name, unit) to ask the autopilot for
-    param_tries: int = 0
-    param_sent_at: float = -math.inf
-    param_answered: bool = False
+    query: ParamQuery = field(default_factory=ParamQuery)
     wmm_at: tuple[float, float] | None = None  # (lat, lon) of the last WMM evaluation
 
     def __post_init__(self) -> None:
@@ -67,24 +64,16 @@ class Declination:
     def plan(self, autopilot: int) -> None:
         """The autopilot is known: which parameter to read (none with the option)."""
         self.param = None if self.option_deg is not None else PARAMETERS.get(autopilot)
-        self.param_tries = 0
-        self.param_answered = False
+        self.query.restart(None if self.param is None else self.param[0])
 
     def param_to_send(self, now: float) -> str | None:
         """The parameter name to ask for now (first try or a retry), else None."""
-        if self.param is None or self.param_answered or self.param_tries >= PARAM_TRIES:
-            return None
-        if now - self.param_sent_at < PARAM_TIMEOUT_S:
-            return None
-        self.param_tries += 1
-        self.param_sent_at = now
-        return self.param[0]
+        return self.query.to_send(now)
 
     def on_param(self, name: str, value: float) -> bool:
         """A PARAM_VALUE from the autopilot; True if the declination changed."""
-        if self.param is None or name != self.param[0]:
+        if self.param is None or not self.query.answer(name):
             return False
-        self.param_answered = True
         deg = value if self.param[1] == "deg" else math.degrees(value)
         if not (math.isfinite(deg) and abs(deg) <= 180.0):
             log.warning("vehicle %d: %s = %r is no declination; not used", self.sysid, name,

@@ -36,6 +36,7 @@ from ..wire.sequence import SequenceTracker
 from .aiding import VelocityAiding
 from .clock import ArrivalClock
 from .declination import Declination
+from .imu_delay import ImuDelay
 from .ingest import SourceKey
 from .negotiate import StreamNegotiation
 from .references import References
@@ -76,6 +77,7 @@ class Vehicle:
     refs: References | None = None
     aiding: VelocityAiding = field(default_factory=VelocityAiding)
     declination: Declination = field(default_factory=lambda: Declination(0))
+    imu_delay: ImuDelay = field(default_factory=lambda: ImuDelay(0))
     negotiation: StreamNegotiation = field(  # the service gives each its settings
         default_factory=lambda: StreamNegotiation(0, 250.0))
     #: armed / landed state from its own HEARTBEAT and EXTENDED_SYS_STATE (imu.flight_state)

@@ -100,7 +100,9 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
     ref, references = pick_reference(found, reference)
     when, when_source = _date(in_session, src)
     velocity = place_velocity(_velocity_rows(in_session, src, clock), t)
-    beats = [m.type for m in _same_component(messages.get("HEARTBEAT", []), src)]
+    own_beats = _same_component(messages.get("HEARTBEAT", []), src)
+    beats = [m.type for m in own_beats]
+    autopilots = [m.autopilot for m in own_beats]
     events, events_source, foreign = _state_events(in_session, src, clock)
     if foreign:
         notes.append(f"ignored {foreign} HEARTBEAT/EXTENDED_SYS_STATE message(s) from "
@@ -113,6 +115,8 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
                      when=when, when_source=when_source, velocity=velocity,
                      mav_type=Counter(beats).most_common(1)[0][0] if beats else None,
                      mav_type_source="HEARTBEAT" if beats else "",
+                     mav_autopilot=(Counter(autopilots).most_common(1)[0][0] if autopilots
+                                    else None),
                      state_events=events, state_events_source=events_source,
                      references=references, autopilot=other_autopilot(found, ref))
 

@@ -80,8 +80,8 @@ def test_arducopter_flight_through_the_bridge(tmp_path):
     # over take-off, flight and landing: at least as good as ArduPilot's own attitude
     ours, theirs = armed_span_scores(bridge.record, 1, "ArduPilot")
     assert ours.total_deg <= theirs.total_deg
-    # inclination too, here (measured 0.24° against 0.49°; on the recorded ArduPilot
+    # inclination too, here (measured 0.23° against 0.49°; on the recorded ArduPilot
     # flights replayed, ArduPilot's own is better: docs/accuracy.md)
     assert ours.inclination_deg <= theirs.inclination_deg
-    assert ours.total_deg <= 0.75  # README: 0.49-0.50°
-    assert ours.inclination_deg <= 0.36  # README: 0.24°
+    assert ours.total_deg <= 0.72  # README: 0.48°
+    assert ours.inclination_deg <= 0.345  # README: 0.23°

@@ -36,7 +36,8 @@ def header_lines(ev: Evaluation) -> list[str]:
     lines.append(f"  declination: {prep.declination.describe()}")
     if prep.imu_delay.seconds > 0.0:
         lines.append(f"  IMU delay:   {prep.imu_delay.ms:.1f} ms ({prep.imu_delay.source}): "
-                     f"the estimates are carried forward by it")
+                     f"the estimates are carried forward by it (-e NAME:imu_delay= "
+                     f"overrides)")
     lines.append(f"  aiding:      {prep.aid_note}")
     lines.append(f"  vehicle:     {vehicle_note(prep.recording)}")
     if prep.flight is not None:

@@ -280,8 +280,8 @@ def run_estimator(trial: Trial, name: str, run: Run, **params: float) -> np.ndar
     known = estimators.estimator_class(name).param_names()
     vehicle = {k: v for k, v in run.params.items() if k in known}  # e.g. eskf's drag model
     est = estimators.create(name, rate_hz=trial.rate_hz, world=trial.world, q0=q0,
-                            declination=trial.declination, imu_delay=trial.imu_delay,
-                            **{**vehicle, **params})
+                            declination=trial.declination,
+                            **{"imu_delay": trial.imu_delay, **vehicle, **params})
     res = est.run(trial.gyr, trial.acc, trial.mag, dt=trial.dt, vel=run.vel,
                   vel_age=run.vel_age, airborne=trial.airborne)
     return res.q

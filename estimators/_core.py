@@ -397,6 +397,27 @@ def workspace_views(ws: np.ndarray) -> tuple:
             ws[n_end:n_end + W_OUT])
 
 
+@kernel
+def turn_forward(out: np.ndarray, gyr: np.ndarray, state: np.ndarray, delay: float) -> None:
+    """out ← out ⊗ exp((ω − b)·delay), in place: one output carried forward by the
+    sender's filter delay at the sample's bias-corrected rate (``Estimator.update``'s
+    per-sample path; ``base.turned_forward`` is the same for arrays). A rate that is not
+    finite leaves it unchanged."""
+    rx = (gyr[0] - state[B0]) * delay
+    ry = (gyr[1] - state[B0 + 1]) * delay
+    rz = (gyr[2] - state[B0 + 2]) * delay
+    if not finite3(rx, ry, rz):
+        return
+    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
+    k = 0.5 - angle * angle / 48.0 if angle < 1e-6 else math.sin(0.5 * angle) / angle
+    cw, cx, cy, cz = math.cos(0.5 * angle), rx * k, ry * k, rz * k
+    w, x, y, z = out[0], out[1], out[2], out[3]
+    out[0] = w * cw - x * cx - y * cy - z * cz
+    out[1] = w * cx + x * cw + y * cz - z * cy
+    out[2] = w * cy - x * cz + y * cw + z * cx
+    out[3] = w * cz + x * cy - y * cx + z * cw
+
+
 @kernel(inline="always")
 def write_output_row(state: np.ndarray, common: np.ndarray, Q: np.ndarray, i: int) -> None:
     """Q[i] ← write_output, without a row view (whose reference counting costs more
@@ -613,3 +634,5 @@ def prepare_update(update_one) -> None:
         for sig in _UPDATE_SIGNATURES:
             update_one.compile(sig)
         update_one.disable_compile()
+    if not turn_forward.signatures:  # (imu_delay's per-sample path, shared by all)
+        turn_forward.compile(types.none(_VEC, _VEC, _VEC, types.float64))

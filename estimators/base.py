@@ -278,12 +278,14 @@ class Estimator:
         self._state[:] = state
         self._counters[:] = 0.0
         self._last_flags = 0
-        self._last_gyr: object = np.zeros(3)  # the last sample's gyro, for imu_delay
+        self._last_gyr: Any = np.zeros(3)  # the last sample's gyro, for imu_delay
 
     @property
     def q(self) -> np.ndarray:
         """Current attitude [w, x, y, z], body -> world."""
         type(self)._write_output(self._state, self._common, self._out)
+        if self.params.imu_delay > 0.0:  # (a gyro kept by reference is made an array now)
+            self._last_gyr = np.ascontiguousarray(self._last_gyr, dtype=np.float64)
         return self._turned_forward(self._out.copy())
 
     @property
@@ -334,17 +336,15 @@ class Estimator:
         if self.params.imu_delay > 0.0:
             self._last_gyr = np.array(gyr, dtype=np.float64)  # a copy: callers reuse buffers
             return self._turned_forward(self._out.copy())
-        self._last_gyr = gyr  # (per-sample cost: copied only when it is used)
+        self._last_gyr = gyr  # (copied only when it is used: per-sample cost)
         return self._out.copy()
 
     def _turned_forward(self, q: np.ndarray) -> np.ndarray:
-        """One output carried forward by ``imu_delay`` at the last sample's rate."""
-        if self.params.imu_delay <= 0.0:
-            return q
-        gyr = np.asarray(self._last_gyr, dtype=np.float64)
-        return turned_forward(q[None, :], gyr[None, :],
-                              self._state[None, _core.B0:_core.B0 + 3],
-                              self.params.imu_delay)[0]
+        """One output (a fresh array) carried forward by ``imu_delay`` at the last
+        sample's rate, in place."""
+        if self.params.imu_delay > 0.0:
+            _core.turn_forward(q, self._last_gyr, self._state, self.params.imu_delay)
+        return q
 
     def _update_converted(self, gyr: object, acc: object, mag: object, dt: object,
                           vel: object, vel_age: object) -> int:

@@ -308,8 +308,15 @@ def test_ctrl_c_in_tune_keeps_the_partial_sweep(tmp_path):
     csv_format.write(data, rec.t, rec.gyr, rec.acc, rec.mag, rec.reference.q)
     out = tmp_path / "sweep.csv"
     points = 4000
-    cmd = [sys.executable, "-m", "bridge.app.cli", "tune", str(data), "-e", "mahony",
-           "-p", f"kp=0.05:5:{points}", "--set", "ki=0", "-j", "2", "--out", str(out)]
+    args = ["tune", str(data), "-e", "mahony", "-p", f"kp=0.05:5:{points}", "--set", "ki=0",
+            "-j", "2", "--out", str(out)]
+    # As typed in a terminal: a suite started in the background of a non-interactive
+    # shell hands its children SIGINT ignored (SigIgn bit 1), and a program keeps an
+    # ignored SIGINT ignored, so the child is given Python's own handler first.
+    start = ("import runpy, signal, sys; signal.signal(signal.SIGINT, "
+             "signal.default_int_handler); sys.argv = ['attitude-bridge', *sys.argv[1:]]; "
+             "runpy.run_module('bridge.app.cli', run_name='__main__', alter_sys=True)")
+    cmd = [sys.executable, "-c", start, *args]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             cwd=os.path.dirname(os.path.dirname(__file__)))
     deadline = time.monotonic() + 120

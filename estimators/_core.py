@@ -403,19 +403,9 @@ def turn_forward(out: np.ndarray, gyr: np.ndarray, state: np.ndarray, delay: flo
     sender's filter delay at the sample's bias-corrected rate (``Estimator.update``'s
     per-sample path; ``base.turned_forward`` is the same for arrays). A rate that is not
     finite leaves it unchanged."""
-    rx = (gyr[0] - state[B0]) * delay
-    ry = (gyr[1] - state[B0 + 1]) * delay
-    rz = (gyr[2] - state[B0 + 2]) * delay
-    if not finite3(rx, ry, rz):
-        return
-    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
-    k = 0.5 - angle * angle / 48.0 if angle < 1e-6 else math.sin(0.5 * angle) / angle
-    cw, cx, cy, cz = math.cos(0.5 * angle), rx * k, ry * k, rz * k
-    w, x, y, z = out[0], out[1], out[2], out[3]
-    out[0] = w * cw - x * cx - y * cy - z * cz
-    out[1] = w * cx + x * cw + y * cz - z * cy
-    out[2] = w * cy - x * cz + y * cw + z * cx
-    out[3] = w * cz + x * cy - y * cx + z * cw
+    wx, wy, wz = gyr[0] - state[B0], gyr[1] - state[B0 + 1], gyr[2] - state[B0 + 2]
+    if finite3(wx, wy, wz):
+        integrate_exact(out, wx, wy, wz, delay)
 
 
 @kernel(inline="always")

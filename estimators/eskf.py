@@ -52,7 +52,8 @@ the velocity information), the bias random walk and a velocity random walk.
   hidden Markov model decides from the data (``_drag_model_on``) and the flags of each
   sample (``F_AIR_MODEL``) tell which model ran.
 * *Bounded velocity* (otherwise: hand-held, an unknown vehicle, or any vehicle on the
-  ground, aided or not — it moves at walking pace at most): ``v ≈ 0`` with
+  ground, aided or not — it moves at walking pace at most; a multirotor whose state
+  nobody reports is on the ground while its detector says so): ``v ≈ 0`` with
   density ``velocity_prior``; the velocity random walk lets it wander slowly, so a steady
   motion is not mistaken for a tilt. The faster the vehicle seems to move (squared speed
   low-passed over ``velocity_scale_tau``), the weaker the statement (noise ×
@@ -1012,8 +1013,12 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
                 state[_core.ACC_REJ] = 1.0
             if not aided:
                 _velocity_prior(state, params, T, params[_I.vertical_velocity_prior], 1)
-        elif not aided or state[_core.FLIGHT] == _core.FLIGHT_GROUND:
-            # on the ground a vehicle moves at walking pace at most, whatever a GPS says
+        elif not aided or state[_core.FLIGHT] == _core.FLIGHT_GROUND or (
+                state[_core.FLIGHT] == _core.FLIGHT_UNKNOWN and params[_I.drag] > 0.0):
+            # On the ground a vehicle moves at walking pace at most, whatever a GPS says;
+            # a multirotor whose state nobody tells is on the ground when the data says so
+            # (the drag model is off): an autopilot's velocity is least trustworthy in
+            # the seconds before it reports its state, while its own filter settles.
             if _velocity_prior(state, params, T, params[_I.velocity_prior], 3, not at_rest):
                 state[_V_OK_T] = now
             else:

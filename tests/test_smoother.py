@@ -20,8 +20,8 @@ from replay import load
 from replay.evaluate import aiding_kwargs, evaluate, flight_kwargs, prepare
 
 #: (flight, smoothed total, smoothed inclination) measured with the defaults [deg]
-PX4_SMOOTHED = {"px4_sih/sih_aggressive.tlog": (0.822, 0.360),
-                "px4_sih/sih_box.tlog": (0.718, 0.405),
+PX4_SMOOTHED = {"px4_sih/sih_aggressive.tlog": (0.826, 0.360),
+                "px4_sih/sih_box.tlog": (0.722, 0.405),
                 "sitl/px4_sih_touchdown.tlog": (0.972, 0.729),
                 "sitl/px4_sih_dashes.tlog": (0.926, 0.605)}
 HEADROOM = 1.1

@@ -25,8 +25,9 @@ import pytest
 
 import estimators
 from bridge.app.calibrate_cli import emulator_samples
+from estimators import quat as Q
 from estimators.eskf import MULTIROTOR_DRAG_PER_S
-from estimators.metrics import rms_errors
+from estimators.metrics import attitude_errors, rms_errors
 from hil import EmulatorConfig, simulate
 from imu.calibration_fit import fit_calibration
 from imu.flight_state import AIRBORNE_LANDED_STATES
@@ -129,8 +130,6 @@ def _standing_still_with_settling_velocity(rate: float = 400.0, seconds: float =
     """A quadrotor standing tilted on the ground, and the velocity its autopilot reports
     while its own filter settles (PX4 SIH's first second: up to 0.11 m/s sideways and
     −1.1 m/s vertical, then a few cm/s) at 50 Hz."""
-    from estimators import quat as Q
-
     rng = np.random.default_rng(3)
     n = int(seconds * rate)
     truth = np.tile(Q.from_euler(np.radians(4.0), np.radians(-3.0), np.radians(50.0)), (n, 1))
@@ -153,7 +152,6 @@ def test_an_aided_quadrotor_nobody_reports_on_is_on_the_ground_when_the_data_say
     Without that rule the settling velocity read as tilt (measured 0.26° peak; with it
     0.04°, the same as when told "on the ground")."""
     gyr, acc, mag, truth, vel = _standing_still_with_settling_velocity()
-    from estimators.metrics import attitude_errors
 
     def peak(airborne):
         est = estimators.create("eskf", rate_hz=400.0, drag=MULTIROTOR_DRAG_PER_S, q0=truth[0])

@@ -44,6 +44,11 @@ class FilterDelay:
     def ms(self) -> float:
         return self.seconds * 1e3
 
+    @property
+    def from_parameter(self) -> bool:
+        """The vehicle's own INS_GYRO_FILTER gave it (not a default or a fallback)."""
+        return self.source.startswith(GYRO_FILTER_PARAM)
+
 
 NONE = FilterDelay(0.0, "none")
 

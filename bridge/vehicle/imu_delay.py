@@ -45,7 +45,7 @@ class ImuDelay:
             self.query.restart(None)
             return self._set(filter_delay.NONE)
         self.query.restart(filter_delay.GYRO_FILTER_PARAM)
-        if self.delay.source.startswith(filter_delay.GYRO_FILTER_PARAM):
+        if self.delay.from_parameter:
             return False  # the vehicle's own value, until it answers again
         return self._set(filter_delay.imu_filter_delay(autopilot, {}, mav_type))
 
@@ -57,7 +57,7 @@ class ImuDelay:
         if not self.query.answer(name):
             return False
         found = filter_delay.imu_filter_delay(self.autopilot, {name: value}, self.mav_type)
-        if not found.source.startswith(filter_delay.GYRO_FILTER_PARAM):
+        if not found.from_parameter:
             log.warning("vehicle %d: %s", self.sysid, found.source)
         return self._set(found)
 

@@ -88,6 +88,7 @@ GRID: dict[str, tuple[float, ...]] = {
     "gyro_rate_noise": (0.002, 0.003, 0.005),
     "aid_density": (0.4, 0.8, 1.6),
     "mag_delay": (0.0, 0.005, 0.01),
+    "drag_noise": (0.1, 0.2, 0.3),
 }
 #: The tuning may not buy a better mean with a worse worst case than this (issue 9).
 WORST_INCLINATION_DEG = 1.8
@@ -463,8 +464,45 @@ def choose(totals: np.ndarray, inclinations: np.ndarray, kinds: list[str],
                else np.argmin(mean))
 
 
+#: The trials the grid workers score (set before the pool forks, so each worker gets
+#: them without pickling 22 recordings per task).
+_GRID_TRIALS: list[Trial] = []
+
+
+def _score_points(points: list[dict[str, float]]) -> list[list[dict[str, ErrorRms]]]:
+    return [[eskf_score(t, p, tuned_only=True) for t in _GRID_TRIALS] for p in points]
+
+
+def _score_grid(trials: list[Trial], points: list[dict[str, float]], jobs: int,
+                progress: Callable[[str], None]) -> list[list[dict[str, ErrorRms]]]:
+    """eskf's tuned runs on every trial for every grid point, on ``jobs`` processes
+    (forked: the compiled kernels and the loaded trials are shared, not rebuilt)."""
+    global _GRID_TRIALS
+    _GRID_TRIALS = trials
+    chunk = 10
+    pieces = [points[k:k + chunk] for k in range(0, len(points), chunk)]
+    began, done, scores = time.perf_counter(), 0, []
+    if jobs <= 1:
+        results = map(_score_points, pieces)
+    else:
+        import multiprocessing
+
+        pool = multiprocessing.get_context("fork").Pool(jobs)
+        results = pool.imap(_score_points, pieces)
+    try:
+        for piece in results:
+            scores.extend(piece)
+            done += len(piece)
+            progress(f"  grid {done}/{len(points)} ({time.perf_counter() - began:.0f} s)")
+    finally:
+        if jobs > 1:
+            pool.close()
+            pool.join()
+    return scores
+
+
 def leave_one_out(trials: list[Trial], grid: dict[str, tuple[float, ...]],
-                  progress: Callable[[str], None] = print
+                  progress: Callable[[str], None] = print, jobs: int = 1
                   ) -> tuple[list[dict[str, float]], np.ndarray, list[tuple]]:
     """Scores of every grid point on every trial, and per trial the held-out result.
 
@@ -472,12 +510,7 @@ def leave_one_out(trials: list[Trial], grid: dict[str, tuple[float, ...]],
     where held_out[t] is (the point chosen without trial t, that point's errors on trial
     t by run label)."""
     points = grid_points(grid)
-    scores = []
-    began = time.perf_counter()
-    for k, p in enumerate(points):
-        scores.append([eskf_score(t, p, tuned_only=True) for t in trials])
-        if k % 10 == 9 or k == len(points) - 1:
-            progress(f"  grid {k + 1}/{len(points)} ({time.perf_counter() - began:.0f} s)")
+    scores = _score_grid(trials, points, jobs, progress)
     totals = np.array([[trial_total(s) for s in row] for row in scores])
     incl = np.array([[trial_worst_inclination(s) for s in row] for row in scores])
     knock = np.array([knock_peak_inclination_deg(p) for p in points])
@@ -560,6 +593,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="small grid, emulator seeds 1-2")
     ap.add_argument("--no-loto", action="store_true", help="tables only, no tuning")
     ap.add_argument("--json", type=Path, help="write the numbers as JSON")
+    ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                    help="processes that score the grid (default: every core)")
     ap.add_argument("--grid", choices=sorted(BRACKET_GRIDS),
                     help="tune over a grid that brackets every default instead of GRID "
                          "(2187 points, about 30 min)")
@@ -583,7 +618,8 @@ def main(argv: list[str] | None = None) -> int:
         grid = BRACKET_GRIDS[args.grid] if args.grid else QUICK_GRID if args.quick else GRID
         print(f"leave-one-trial-out over {len(grid_points(grid))} eskf parameter sets "
               f"({', '.join(grid)}) and {len(trials)} trials")
-        points, (totals, incl, kinds, knock, gain), held = leave_one_out(trials, grid)
+        points, (totals, incl, kinds, knock, gain), held = leave_one_out(trials, grid,
+                                                                           jobs=args.jobs)
         best = choose(totals, incl, kinds, knock, gain)
         print(f"aiding gain in a sustained acceleration: defaults {aiding_gain({}):.2f}x, "
               f"chosen {gain[best]:.2f}x, {int((gain >= AIDING_GAIN_MIN).sum())} of "

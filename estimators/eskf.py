@@ -171,7 +171,7 @@ class EskfParams(CommonParams):
                              "μ [1/s] (f_xy = −μ·v_body,xy); 0 = not a multirotor")
     drag_sigma_init: float = param(0.7, "initial standard deviation of ln μ (μ is "
                                         "estimated in logarithm: 0.7 is a factor of two)")
-    drag_noise: float = param(0.3, "drag measurement noise density [m/s^2·sqrt(s)]")
+    drag_noise: float = param(0.2, "drag measurement noise density [m/s^2·sqrt(s)]")
     vertical_velocity_prior: float = param(1.0, "multirotor: vertical velocity ≈ 0 "
                                                 "pseudo-measurement density [m/s·sqrt(s)]")
     aid_heading: float = param(0.0, "1: velocity aiding also corrects the heading; 0: "

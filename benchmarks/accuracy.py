@@ -52,10 +52,11 @@ import argparse
 import itertools
 import json
 import math
+import multiprocessing
 import os
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -475,29 +476,25 @@ def _score_points(points: list[dict[str, float]]) -> list[list[dict[str, ErrorRm
 
 def _score_grid(trials: list[Trial], points: list[dict[str, float]], jobs: int,
                 progress: Callable[[str], None]) -> list[list[dict[str, ErrorRms]]]:
-    """eskf's tuned runs on every trial for every grid point, on ``jobs`` processes
-    (forked: the compiled kernels and the loaded trials are shared, not rebuilt)."""
+    """eskf's tuned runs on every trial for every grid point, in grid order, on ``jobs``
+    processes (forked: the compiled kernels and the loaded trials are shared, not
+    rebuilt per task)."""
     global _GRID_TRIALS
     _GRID_TRIALS = trials
-    chunk = 10
-    pieces = [points[k:k + chunk] for k in range(0, len(points), chunk)]
-    began, done, scores = time.perf_counter(), 0, []
-    if jobs <= 1:
-        results = map(_score_points, pieces)
-    else:
-        import multiprocessing
+    pieces = [points[k:k + 10] for k in range(0, len(points), 10)]
+    began, scores = time.perf_counter(), []
 
-        pool = multiprocessing.get_context("fork").Pool(jobs)
-        results = pool.imap(_score_points, pieces)
-    try:
+    def collect(results: Iterable[list[list[dict[str, ErrorRms]]]]) -> None:
         for piece in results:
             scores.extend(piece)
-            done += len(piece)
-            progress(f"  grid {done}/{len(points)} ({time.perf_counter() - began:.0f} s)")
-    finally:
-        if jobs > 1:
-            pool.close()
-            pool.join()
+            progress(f"  grid {len(scores)}/{len(points)} "
+                     f"({time.perf_counter() - began:.0f} s)")
+
+    if jobs <= 1:
+        collect(map(_score_points, pieces))
+    else:
+        with multiprocessing.get_context("fork").Pool(jobs) as pool:
+            collect(pool.imap(_score_points, pieces))  # imap keeps the grid's order
     return scores
 
 

@@ -52,11 +52,10 @@ import argparse
 import itertools
 import json
 import math
-import multiprocessing
 import os
 import sys
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -474,32 +473,34 @@ def _score_points(points: list[dict[str, float]]) -> list[list[dict[str, ErrorRm
     return [[eskf_score(t, p, tuned_only=True) for t in _GRID_TRIALS] for p in points]
 
 
-def _score_grid(trials: list[Trial], points: list[dict[str, float]], jobs: int,
+def _score_grid(trials: list[Trial], points: list[dict[str, float]], jobs: int | None,
                 progress: Callable[[str], None]) -> list[list[dict[str, ErrorRms]]]:
     """eskf's tuned runs on every trial for every grid point, in grid order, on ``jobs``
-    processes (forked: the compiled kernels and the loaded trials are shared, not
-    rebuilt per task)."""
+    processes (``replay.parallel``, forked: the compiled kernels and the loaded trials
+    are shared, not rebuilt per task)."""
+    from replay.parallel import run
+
     global _GRID_TRIALS
     _GRID_TRIALS = trials
-    pieces = [points[k:k + 10] for k in range(0, len(points), 10)]
-    began, scores = time.perf_counter(), []
+    pieces = [(points[k:k + 10],) for k in range(0, len(points), 10)]
+    began, scored = time.perf_counter(), 0
 
-    def collect(results: Iterable[list[list[dict[str, ErrorRms]]]]) -> None:
-        for piece in results:
-            scores.extend(piece)
-            progress(f"  grid {len(scores)}/{len(points)} "
-                     f"({time.perf_counter() - began:.0f} s)")
+    def done(_: int, piece: list[list[dict[str, ErrorRms]]]) -> None:
+        nonlocal scored
+        scored += len(piece)
+        progress(f"  grid {scored}/{len(points)} ({time.perf_counter() - began:.0f} s)")
 
-    if jobs <= 1:
-        collect(map(_score_points, pieces))
-    else:
-        with multiprocessing.get_context("fork").Pool(jobs) as pool:
-            collect(pool.imap(_score_points, pieces))  # imap keeps the grid's order
-    return scores
+    def crashed(_: tuple, reason: str) -> None:
+        raise RuntimeError(f"a grid worker failed: {reason}")
+
+    out = run(_score_points, pieces, on_crash=crashed, jobs=jobs, on_done=done)
+    if out.interrupted:
+        raise KeyboardInterrupt
+    return [row for piece in out.results for row in piece]
 
 
 def leave_one_out(trials: list[Trial], grid: dict[str, tuple[float, ...]],
-                  progress: Callable[[str], None] = print, jobs: int = 1
+                  progress: Callable[[str], None] = print, jobs: int | None = 1
                   ) -> tuple[list[dict[str, float]], np.ndarray, list[tuple]]:
     """Scores of every grid point on every trial, and per trial the held-out result.
 
@@ -590,12 +591,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="small grid, emulator seeds 1-2")
     ap.add_argument("--no-loto", action="store_true", help="tables only, no tuning")
     ap.add_argument("--json", type=Path, help="write the numbers as JSON")
-    ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+    ap.add_argument("--jobs", type=int,
                     help="processes that score the grid (default: every core)")
     ap.add_argument("--grid", choices=sorted(BRACKET_GRIDS),
                     help="tune over a grid that brackets every default instead of GRID "
                          "(2187 points, about 30 min)")
     args = ap.parse_args(argv)
+    if args.jobs is not None and args.jobs < 1:
+        ap.error(f"--jobs {args.jobs}: expected a number of processes >= 1")
     began = time.perf_counter()
     seeds = (1, 2) if args.quick else (1, 2, 3)
     trials = (broad_trials(DATA / "broad")

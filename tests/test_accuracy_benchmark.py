@@ -40,11 +40,13 @@ def _swinging_board(name: str, seed: int) -> accuracy.Trial:
 
 def test_grid_scores_and_choices_equal_on_one_and_on_two_processes():
     trials = [_swinging_board("a", 1), _swinging_board("b", 2), _swinging_board("c", 3)]
-    grid = {"gyro_noise": (0.005, 0.012), "drag_noise": (0.1, 0.3), "mag_noise": (0.25,)}
+    # 12 points: two tasks of up to 10, so two processes do share the work
+    grid = {"gyro_noise": (0.005, 0.008, 0.012), "drag_noise": (0.1, 0.3),
+            "mag_noise": (0.25, 0.4)}
     points = accuracy.grid_points(grid)
     one = accuracy._score_grid(trials, points, 1, lambda _: None)
     two = accuracy._score_grid(trials, points, 2, lambda _: None)
-    assert len(one) == len(points) == 4
+    assert len(one) == len(points) == 12
     assert one == two  # ErrorRms values, bit for bit, in grid order
     # the noise values do change the scores: the grid is not scoring one point four times
     totals = {round(row[0]["drag"].total_deg, 9) for row in one}

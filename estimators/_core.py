@@ -92,13 +92,13 @@ FLIGHT_UNKNOWN, FLIGHT_GROUND, FLIGHT_AIRBORNE = -1.0, 0.0, 1.0
 
 # --- counters (float64 slots of the workspace: whole numbers, exact below 2**53) ------
 C_SAMPLES = 0  # samples offered
-C_SKIPPED = 1  # samples not used at all (gyro non-finite or bad dt)
+C_SKIPPED = 1  # samples not used at all (gyro non-finite or impossible, or bad dt)
 C_BAD_DT = 2  # of those: dt non-finite, <= 0 or > max_dt
 C_ACC_UNUSABLE = 3  # accelerometer NaN/inf, zero-norm or saturated (gyro still used)
 C_MAG_UNUSABLE = 4  # magnetometer given but NaN/inf or zero-norm
 C_ACC_REJECTED = 5  # usable but rejected by the estimator as non-gravitational
 C_MAG_REJECTED = 6  # usable but rejected by the estimator as disturbed
-C_GYR_SATURATED = 7  # gyro at full scale (still integrated: it is the best we have)
+C_GYR_SATURATED = 7  # gyro at full scale (integrated clipped to it: the best we have)
 N_COUNTERS = 8
 COUNTER_NAMES = (
     "samples", "skipped", "bad_dt", "acc_unusable", "mag_unusable",
@@ -131,6 +131,9 @@ F_ACC_UNUSABLE = 16
 F_AIR_MODEL = 32  # the estimator's in-flight model (eskf: rotor drag) was on
 
 _SAT_FRACTION = 0.999
+#: A gyro axis beyond this many times its full scale is no saturated reading (a sensor
+#: cannot report it) but a corrupt one: the sample is skipped, not clipped and integrated.
+GYR_CORRUPT_FACTOR = 2.0
 _ACC_MIN_NORM = 1e-3  # m/s^2: below this the direction of gravity is meaningless
 
 
@@ -442,7 +445,9 @@ def _make_process(step, takes_velocity: bool):
         """One sample with the common checks; returns the F_* flags of this sample."""
         counters[C_SAMPLES] += 1
         initialised = F_INITIALISED if state[INIT] > 0.0 else 0
-        if not finite3(gx, gy, gz):
+        grange = common[P_GYR_RANGE]
+        glim = GYR_CORRUPT_FACTOR * grange
+        if not finite3(gx, gy, gz) or abs(gx) > glim or abs(gy) > glim or abs(gz) > glim:
             counters[C_SKIPPED] += 1
             return F_SKIPPED | initialised
         if not (dt > 0.0 and dt <= common[P_MAX_DT]):
@@ -463,9 +468,12 @@ def _make_process(step, takes_velocity: bool):
             mag_ok = mag_usable(mx, my, mz)
             if not mag_ok:
                 counters[C_MAG_UNUSABLE] += 1
-        glim = _SAT_FRACTION * common[P_GYR_RANGE]
+        glim = _SAT_FRACTION * grange
         if abs(gx) >= glim or abs(gy) >= glim or abs(gz) >= glim:
             counters[C_GYR_SATURATED] += 1
+            gx = min(max(gx, -grange), grange)
+            gy = min(max(gy, -grange), grange)
+            gz = min(max(gz, -grange), grange)
         if not takes_velocity:
             track_velocity(state, common, vx, vy, vz, v_age)
         if not initialised:

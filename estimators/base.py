@@ -58,7 +58,9 @@ class CommonParams:
     acc_range: float = param(16 * G, "accelerometer full scale [m/s^2]; an axis at it is "
                                      "saturated and the sample's accelerometer is unused")
     gyr_range: float = param(math.radians(2000.0), "gyro full scale [rad/s]; saturation is "
-                                                   "counted (the clipped rate still integrates)")
+                                                   "counted (the rate, clipped to it, still "
+                                                   "integrates); beyond twice it a sample is "
+                                                   "corrupt and skipped")
     max_dt: float = param(0.5, "longest usable time step [s]; longer gaps are skipped")
     declination: float = param(0.0, "magnetic declination [rad], east positive: the output "
                                     "heading is relative to true north (magnetic + "

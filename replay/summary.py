@@ -72,6 +72,11 @@ def table_lines(ev: Evaluation, scores: dict | None = None) -> list[str]:
     for k, ((head, reason), who) in enumerate(notes.items(), start=1):
         scope = "" if len(who) == len(labels) else f" [{', '.join(who)}]"
         lines.append(f"  ({k}) {head}{scope}: {reason}")
+    skipped = {label: s.skipped for label, s in scores.items() if s.skipped}
+    if skipped:
+        lines.append("  note: samples skipped (gyro not finite or beyond twice its full "
+                     "scale, or a bad time step): "
+                     + ", ".join(f"{label} {n}" for label, n in skipped.items()))
     return lines
 
 

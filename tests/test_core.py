@@ -91,6 +91,33 @@ def test_saturated_gyro_is_counted_but_still_integrated():
     assert Q.angle_between(q, Q.from_rotvec([0.0, 0.0, full / 1000.0])) < 1e-14
 
 
+def test_gyro_beyond_full_scale_is_clipped_to_it():
+    """A sensor cannot report more than its full scale: a rate up to twice it is a
+    saturated reading (or a scale error) and integrates as the full scale."""
+    full = math.radians(250.0)
+    est = estimators.create("quaternion", q0=Q.identity(), gyr_range=full, rate_hz=1000.0)
+    q = est.update([0.0, -1.9 * full, 0.3], [0.0, 0.0, -G])
+    assert est.counters.gyr_saturated == 1 and est.counters.skipped == 0
+    assert Q.angle_between(q, Q.from_rotvec([0.0, -full / 1000.0, 0.3 / 1000.0])) < 1e-14
+
+
+@pytest.mark.parametrize("value", [2.01, 4.0, 1e6, 1e20, -1e300])
+@pytest.mark.parametrize("name", ["quaternion", "mahony", "madgwick", "kalman", "eskf"])
+def test_gyro_far_beyond_full_scale_is_a_corrupt_sample_and_skipped(name, value):
+    """One corrupt gyro value (x full scale) must not turn the attitude: every estimator
+    skips the sample and counts it, and ends where the clean run ends."""
+    full = math.radians(2000.0)
+    n = 400
+    gyr = np.zeros((n, 3))
+    acc = np.tile([0.0, 0.0, -G], (n, 1))
+    clean = estimators.create(name, rate_hz=200.0).run(gyr, acc)
+    gyr[n // 2, 1] = value * full
+    est = estimators.create(name, rate_hz=200.0)
+    res = est.run(gyr, acc)
+    assert est.counters.skipped == 1 and est.counters.gyr_saturated == 0
+    assert Q.angle_between(res.q[-1], clean.q[-1]) < 1e-9
+
+
 @pytest.mark.parametrize("dt", [0.0, -0.001, np.nan, np.inf, -np.inf, 0.0501])
 def test_bad_dt_is_skipped_and_counted(dt):
     est = estimators.create("quaternion", q0=Q.identity(), max_dt=0.05)

@@ -177,6 +177,27 @@ def test_csv_rows_with_non_numeric_cells_are_dropped_and_counted(data_dir, tmp_p
         capsys.readouterr().out
 
 
+def test_a_corrupt_gyro_value_is_skipped_and_noted_not_integrated(data_dir, tmp_path, capsys):
+    """One gyro cell of 1e20 rad/s (a corrupt number, not a saturated sensor) used to turn
+    mahony's attitude by up to 150° with exit 0 and no word."""
+    clean, bad = tmp_path / "clean.csv", tmp_path / "bad.csv"
+    broad_as_csv(data_dir, clean, rows=3000)
+    text = clean.read_text().splitlines()
+    cells = text[1500].split(",")
+    cells[1] = "1e20"  # gx of a sample mid-way through the movement
+    text[1500] = ",".join(cells)
+    bad.write_text("\n".join(text) + "\n")
+    scores = {}
+    for path in (clean, bad):
+        assert main(["replay", str(path), "-e", "mahony", "--json", str(path) + ".json"]) == 0
+        doc = json.loads(Path(str(path) + ".json").read_text())
+        scores[path.name] = doc["estimators"]["mahony"]["total_deg"]
+    out = capsys.readouterr().out
+    assert "note: samples skipped (gyro not finite or beyond twice its full scale, or a " \
+           "bad time step): mahony 1" in out
+    assert scores["bad.csv"] == pytest.approx(scores["clean.csv"], abs=0.05)
+
+
 @pytest.mark.parametrize("kind", ["ulog", "tlog", "csv"])
 def test_damaged_file_with_nothing_usable_left_is_one_line(data_dir, tmp_path, capsys, kind):
     if kind == "ulog":  # cut before the first sensor_combined sample

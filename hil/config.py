@@ -18,6 +18,9 @@ from .sensors.ms5611 import Ms5611
 IMU_MESSAGES = ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "HIGHRES_IMU")
 #: Default ceiling for HIL_STATE_QUATERNION: every IMU sample up to this rate.
 MAX_TRUTH_RATE_HZ = 1000.0
+#: An STM32's internal RC oscillator is within 1 % (10 000 ppm); a "crystal" 10 % off
+#: is a typo, and beyond it the board's timestamps no longer fit MAVLink's fields.
+MAX_CLOCK_DRIFT_PPM = 100_000.0
 
 
 @dataclass(frozen=True)
@@ -68,10 +71,13 @@ class EmulatorConfig:
         configure_for_rate(self.rate_hz)  # validates the rate
         if not 0.1 <= self.baro_rate_hz <= 100.0:
             raise ValueError("barometer rate must be 0.1..100 Hz (MS5611 at OSR 4096)")
-        if self.heartbeat_hz <= 0.0:
+        if not (math.isfinite(self.heartbeat_hz) and self.heartbeat_hz > 0.0):
             raise ValueError("heartbeat rate must be > 0")
-        if self.clock_jitter_us < 0 or self.clock_jitter_us * 2e-6 >= 1.0 / self.imu_rate_hz:
+        if not 0.0 <= self.clock_jitter_us * 2e-6 < 1.0 / self.imu_rate_hz:
             raise ValueError("clock jitter must be >= 0 and below half an IMU period")
+        if not abs(self.clock_drift_ppm) <= MAX_CLOCK_DRIFT_PPM:
+            raise ValueError(f"clock drift must be within ±{MAX_CLOCK_DRIFT_PPM:g} ppm, got "
+                             f"{self.clock_drift_ppm}")
         if self.truth_rate_hz is not None and not 0 < self.truth_rate_hz <= self.imu_rate_hz:
             raise ValueError("truth rate must be > 0 and not above the IMU rate")
 

@@ -32,6 +32,8 @@ def rest_magnitude(acc: np.ndarray) -> float:
     mean = win.mean(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         spread = win.std(axis=1) / mean
+    if not np.isfinite(spread).any():  # every window reads zero: a dead accelerometer
+        return float(np.median(norm))
     calm = spread <= np.nanpercentile(spread, 25)
     return float(np.median(mean[calm]))
 

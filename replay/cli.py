@@ -64,7 +64,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "stops early and keeps the points done so far.")
     t.add_argument("files", type=Path, nargs="+", metavar="PATH",
                    help="log files, folders (every log inside, recursively), patterns")
-    t.add_argument("--estimator", "-e", required=True, help="estimator name")
+    t.add_argument("--estimator", "-e", required=True, metavar="NAME[:k=v,...]",
+                   help="estimator, with parameters fixed at every grid point")
     t.add_argument("--param", "-p", action="append", default=[], required=True,
                    metavar="NAME=LO:HI:N", help="swept parameter (LO:HI:N linspace, "
                    "or V1,V2,...); repeat for a multi-dimensional grid")
@@ -240,7 +241,14 @@ def _tune(args: argparse.Namespace) -> int:
         if args.group_by != "log" and not args.cross_validate:
             raise ReplayInputError("--group-by goes with --cross-validate")
         axes = [parse_param(p) for p in args.param]
-        fixed = EstimatorSpec.parse(f"{args.estimator}:{','.join(args.set)}").params
+        # -e NAME[:k=v,...] and --set k=v both fix parameters (the swept ones excepted)
+        spec = EstimatorSpec.parse(args.estimator)
+        extra = EstimatorSpec.parse(f"{spec.name}:{','.join(args.set)}").params
+        twice = sorted(set(spec.params) & set(extra))
+        if twice:
+            raise ReplayInputError(f"{', '.join(twice)}: given in -e and in --set")
+        fixed = {**spec.params, **extra}
+        args.estimator = spec.name
         files = expand(args.files)
         if args.cross_validate:
             check_groups([str(f) for f in files], args.group_by)
@@ -269,6 +277,18 @@ def _tune(args: argparse.Namespace) -> int:
         if not args.scheduler:
             result = sweep(prepared, args.estimator, axes, fixed, jobs=args.jobs,
                            init=args.init, progress=not args.quiet)
+        dead = result.unscored_files()
+        if dead:  # a log the estimator never ran on, at any grid point
+            why = (f"{args.estimator} never ran on a scored sample at any grid point (no "
+                   f"usable gyro or accelerometer where the reference is)")
+            if len(dead) == len(result.files):
+                raise ReplayInputError(f"{', '.join(dead)}: {why}")
+            result = result.without(dead)
+            left_out += [f"{f}: {why}" for f in dead]
+            for f in dead:
+                print(f"attitude-bridge tune: left out {f}: {why}", file=sys.stderr)
+            if args.cross_validate:
+                check_groups(list(result.files), args.group_by)
         done = int(result.done.sum())
         if result.interrupted:
             print(f"interrupted: {done} of {len(result.points)} parameter sets done",
@@ -281,7 +301,7 @@ def _tune(args: argparse.Namespace) -> int:
         return INTERRUPTED
     except (ReplayInputError, ValueError) as exc:
         return _fail("tune", exc)
-    print(f"{done} parameter sets x {len(prepared)} file(s) in {result.seconds:.1f} s"
+    print(f"{done} parameter sets x {len(result.files)} file(s) in {result.seconds:.1f} s"
           + (f" ({len(left_out)} left out: see above)" if left_out else ""))
     if best is not None:
         i = result.best_index

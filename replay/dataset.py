@@ -35,6 +35,14 @@ class TimeCleanup:
     def dropped(self) -> int:
         return self.duplicates + self.backwards + self.non_finite
 
+    def __str__(self) -> str:
+        """"3 of 5000 (1 duplicate time, 2 going backwards)" for the replay summary."""
+        parts = [f"{n} {what}" for n, what in ((self.duplicates, "duplicate time"),
+                                                (self.backwards, "going backwards"),
+                                                (self.non_finite, "time not a number"))
+                 if n]
+        return f"{self.dropped} of {self.kept + self.dropped} ({', '.join(parts)})"
+
 
 @dataclass(frozen=True)
 class Reference:

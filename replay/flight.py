@@ -146,9 +146,11 @@ def phases(t: np.ndarray, gyr: np.ndarray, landed: np.ndarray, armed: np.ndarray
 
 def _smoothed_rate(t: np.ndarray, gyr: np.ndarray) -> np.ndarray:
     """|gyro| averaged over MOVING_SMOOTH_S (a moving mean on the sample grid)."""
-    rate = np.linalg.norm(gyr, axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):  # a corrupt 1e308: "moving" (inf)
+        rate = np.linalg.norm(gyr, axis=1)
     if len(t) < 2:
         return rate
     step = float(np.median(np.diff(t)))
-    w = max(1, round(MOVING_SMOOTH_S / max(step, 1e-6)))
+    # (no wider than the recording: "same" returns the longer of the two)
+    w = min(len(rate), max(1, round(MOVING_SMOOTH_S / max(step, 1e-6))))
     return np.convolve(rate, np.ones(w) / w, mode="same")

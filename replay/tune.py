@@ -18,7 +18,7 @@ import os
 import signal
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +42,11 @@ class ParamAxis:
     values: np.ndarray
 
 
+#: The largest grid a sweep takes: a million points is days on one core for a long log;
+#: a typo (kp=0:1:100000000) should not look like a hang.
+MAX_GRID_POINTS = 1_000_000
+
+
 def parse_param(text: str) -> ParamAxis:
     """``kp=0.1:3:30`` (30 values from 0.1 to 3 inclusive), ``kp=0.1,0.5,2`` or ``kp=1``."""
     name, sep, spec = text.partition("=")
@@ -55,12 +60,16 @@ def parse_param(text: str) -> ParamAxis:
             lo, hi, n = float(parts[0]), float(parts[1]), int(parts[2])
             if n < 1 or not (math.isfinite(lo) and math.isfinite(hi)):
                 raise ValueError
-            values = np.linspace(lo, hi, n)
         else:
             values = np.array([float(v) for v in spec.split(",")])
     except ValueError:
         raise ValueError(f"--param {text!r}: expected NAME=LO:HI:N (N >= 1 integer) or "
                          f"NAME=V1,V2,... with numbers") from None
+    if ":" in spec:
+        if n > MAX_GRID_POINTS:  # before np.linspace allocates them
+            raise ValueError(f"--param {text!r}: {n:,} values (at most {MAX_GRID_POINTS:,} "
+                             f"in a grid)")
+        values = np.linspace(lo, hi, n)
     return ParamAxis(name.strip(), values)
 
 
@@ -105,6 +114,23 @@ class Sweep:
     @property
     def best(self) -> dict[str, float]:
         return {**self.fixed, **self.points[self.best_index]}
+
+    def unscored_files(self) -> list[str]:
+        """Files with no finite score at any scored grid point: the estimator never ran
+        on a scored sample of theirs (no usable gyro or accelerometer), whatever the
+        parameters; they would make every mean NaN."""
+        if not self.done.any():
+            return []
+        dead = ~np.isfinite(self.total[self.done]).any(axis=0)
+        return [f for f, d in zip(self.files, dead, strict=True) if d]
+
+    def without(self, files: Sequence[str]) -> Sweep:
+        """The same sweep over the other files."""
+        keep = np.array([f not in set(files) for f in self.files], dtype=bool)
+        return replace(self, files=tuple(f for f, k in zip(self.files, keep, strict=True)
+                                         if k),
+                       total=self.total[:, keep], heading=self.heading[:, keep],
+                       inclination=self.inclination[:, keep])
 
     def grid(self, values: np.ndarray | None = None) -> np.ndarray:
         """Scores reshaped to the grid: axis order as given on the command line."""
@@ -194,6 +220,14 @@ def grid_points(estimator: str, axes: Sequence[ParamAxis], fixed: dict[str, floa
     names = [a.name for a in axes]
     if len(set(names)) != len(names):
         raise ValueError(f"a parameter is swept twice: {names}")
+    size = math.prod(len(a.values) for a in axes)
+    if size > MAX_GRID_POINTS:
+        raise ValueError(f"a grid of {size:,} points (at most {MAX_GRID_POINTS:,}): fewer "
+                         f"values per --param, or tune in stages")
+    both = sorted(set(names) & set(fixed))
+    if both:
+        raise ValueError(f"{', '.join(both)}: both swept (-p) and fixed (--set or "
+                         f"-e {estimator}:...); give it one way")
     cls.make_params(**{n: float(a.values[0]) for n, a in zip(names, axes, strict=True)},
                     **fixed)
     return tuple(dict(zip(names, map(float, combo), strict=True))

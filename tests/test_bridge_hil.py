@@ -119,6 +119,7 @@ def flight_run():
     return cfg, listener, status
 
 
+@pytest.mark.xdist_group("bridge_hil_flight")  # one worker builds the fixture once
 def test_flight_output_is_the_estimators_own_result(flight_run):
     cfg, listener, status = flight_run
     est, _, stamps = truth_at_outputs(listener)
@@ -134,6 +135,7 @@ def test_flight_output_is_the_estimators_own_result(flight_run):
     assert live["samples"] > 100 and np.isfinite(live["total_deg"])
 
 
+@pytest.mark.xdist_group("bridge_hil_flight")  # one worker builds the fixture once
 def test_flight_accuracy_against_truth(flight_run):
     """Primary estimate against the truth over the whole stream (ground, arming, take-off,
     flight) and after the first 10 s: measured 0.30° and 0.10° total (0.16° / 0.047°

@@ -227,6 +227,7 @@ def flight_run():
     return simulate(cfg), rx
 
 
+@pytest.mark.xdist_group("hil_flight_run")  # one worker builds the fixture once
 def test_flight_state_follows_the_flight_plan(flight_run):
     rec, _ = flight_run
     assert runs(rec.armed, rec.landed_state) == ONE_FLIGHT
@@ -252,6 +253,7 @@ def test_flight_state_follows_the_flight_plan(flight_run):
     assert 1.5 <= t[armed[-1] + 1] - touchdown <= 2.5
 
 
+@pytest.mark.xdist_group("hil_flight_run")  # one worker builds the fixture once
 def test_flight_state_on_the_wire_is_the_recorded_one(flight_run):
     rec, rx = flight_run
     assert wire_states(rx) == ONE_FLIGHT
@@ -299,6 +301,7 @@ def test_handheld_flight_hands_over_to_the_flight_without_a_jump():
         HandheldThenFlight("x", handheld(), bench_flights(s, math.radians(40.0)), s)
 
 
+@pytest.mark.xdist_group("hil_handheld")  # one worker builds the fixture once
 def test_handheld_flight_is_carried_then_takes_off_twice(handheld_rec):
     rec = handheld_rec
     profile = make_profile("handheld_flight")
@@ -330,6 +333,7 @@ def test_handheld_flight_is_carried_then_takes_off_twice(handheld_rec):
         [starts[0], ends[0], starts[1], ends[1]], abs=0.011)
 
 
+@pytest.mark.xdist_group("hil_handheld")  # one worker builds the fixture once
 def test_handheld_flight_from_the_command_line(handheld_rec):
     """`attitude-bridge hil --profile handheld_flight` (ArduPilot, --fast): the same
     samples as simulate(), and HEARTBEAT disarmed, armed, disarmed, armed, disarmed."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +48,48 @@ def test_tune_cli_writes_sweep(tmp_path, capsys):
     totals = [float(line.split(",")[1]) for line in lines[1:]]
     best_kp = float(lines[1 + int(np.argmin(totals))].split(",")[0])
     assert f"best mahony: ki=0, kp={best_kp:.6g}" in capsys.readouterr().out
+
+
+def test_tune_takes_fixed_parameters_in_e_as_replay_does(tmp_path, capsys):
+    """`-e mahony:ki=0` fixes ki like `--set ki=0` (it used to fail: "got '0:'"); a
+    parameter both swept and fixed is one line, not an internal error."""
+    rec = generate(SyntheticConfig(duration_s=4.0, seed=5))
+    path = tmp_path / "s.csv"
+    csv_format.write(path, rec.t, rec.gyr, rec.acc, rec.mag, rec.reference.q)
+    grid = ["--param", "kp=0.05:5:3", "--jobs", "1", "-q"]
+    assert main(["tune", str(path), "-e", "mahony", "--set", "ki=0", *grid]) == 0
+    with_set = capsys.readouterr().out.splitlines()[1]
+    assert main(["tune", str(path), "-e", "mahony:ki=0", *grid]) == 0
+    assert capsys.readouterr().out.splitlines()[1] == with_set
+    for argv, expected in ((["-e", "mahony", "--set", "kp=1"], "kp: both swept (-p) and fixed"),
+                           (["-e", "mahony:kp=1"], "kp: both swept (-p) and fixed"),
+                           (["-e", "mahony:ki=0", "--set", "ki=0.1"], "ki: given in -e and in"),
+                           (["-e", "mahony", "--param", "ki=0:1:100000000"],
+                            "100,000,000 values (at most 1,000,000"),
+                           (["-e", "mahony", "--param", "ki=0:1:1000000"],
+                            "a grid of 3,000,000 points")):
+        assert main(["tune", str(path), *argv, *grid]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and expected in err, err
+
+
+def test_tune_leaves_out_a_log_no_estimator_runs_on(tmp_path, capsys):
+    """A log whose gyro is NaN throughout loads, but no grid point scores on it: it used
+    to fail the whole corpus ("no grid point produced a finite score", no log named)."""
+    rec = generate(SyntheticConfig(duration_s=4.0, seed=5))
+    csv_format.write(tmp_path / "good.csv", rec.t, rec.gyr, rec.acc, rec.mag, rec.reference.q)
+    n = len(rec.t)
+    np.savez(tmp_path / "dead.npz", rate=100.0, gyr=np.full((n, 3), np.nan),
+             acc=np.tile([0.0, 0.0, 9.81], (n, 1)), quat_ref=np.tile([1.0, 0, 0, 0], (n, 1)),
+             movement=np.ones(n, dtype=bool))
+    grid = ["-e", "mahony", "--param", "kp=0.5,1", "--jobs", "1", "-q"]
+    assert main(["tune", str(tmp_path), *grid]) == 0
+    out, err = capsys.readouterr()
+    assert f"left out {tmp_path / 'dead.npz'}: mahony never ran on a scored sample" in err
+    assert "2 parameter sets x 1 file(s)" in out and "good.csv: total" in out
+    assert main(["tune", str(tmp_path / "dead.npz"), *grid]) == 2  # nothing left: one line
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "dead.npz: mahony never ran" in err, err
 
 
 def test_csv_round_trip_and_time_cleanup(tmp_path):
@@ -132,6 +175,23 @@ def cut_copy(src, dst, size: int):
     return dst
 
 
+def test_ulog_damaged_inside_is_noted_not_silent(data_dir, tmp_path, capsys):
+    """5000 random bytes in the middle of a real ULog: pyulog resynchronises and loses
+    some samples, which used to go without a note (and pyulog's own notice went to
+    stdout, into the replay's output)."""
+    src = data_dir / "logs" / "pyulog_sample_px4_events.ulg"
+    data = bytearray(src.read_bytes())
+    data[200_000:205_000] = np.random.default_rng(3).bytes(5000)
+    path = tmp_path / "garbled.ulg"
+    path.write_bytes(bytes(data))
+    rec = load(path)
+    assert 0 < rec.n < load(src).n
+    assert [n for n in rec.notes if n.startswith("ULog damaged inside: pyulog skipped")]
+    assert main(["replay", str(path), "-e", "mahony"]) == 0
+    out = capsys.readouterr().out
+    assert "note: ULog damaged inside" in out and "File corruption detected" not in out
+
+
 def test_ulog_cut_inside_a_message_is_noted(data_dir, tmp_path):
     src = data_dir / "logs" / "pyulog_sample_log_small.ulg"
     rec = load(cut_copy(src, tmp_path / "cut.ulg", 600_000))
@@ -196,6 +256,90 @@ def test_a_corrupt_gyro_value_is_skipped_and_noted_not_integrated(data_dir, tmp_
     assert "note: samples skipped (gyro not finite or beyond twice its full scale, or a " \
            "bad time step): mahony 1" in out
     assert scores["bad.csv"] == pytest.approx(scores["clean.csv"], abs=0.05)
+
+
+@pytest.mark.parametrize(("kind", "expected"), [
+    ("rate vector", "rate must be one number"),
+    ("rate text", "not a BROAD-style .npz"),
+    ("object gyro", "not a BROAD-style .npz"),
+    ("lone .npy", "not a .npz archive"),
+])
+def test_npz_with_wrong_contents_is_one_line_naming_the_file(tmp_path, capsys, kind, expected):
+    """These four used to end in an internal error (a TypeError) or a message without the
+    file's name."""
+    path = tmp_path / "trial.npz"
+    gyr, acc = np.zeros((100, 3)), np.tile([0.0, 0.0, 9.81], (100, 1))
+    if kind == "lone .npy":
+        with path.open("wb") as f:
+            np.save(f, gyr)
+    else:
+        rate = {"rate vector": np.array([100.0, 200.0]), "rate text": np.array("abc")}.get(
+            kind, np.array(100.0))
+        g = np.array([[None] * 3] * 100, dtype=object) if kind == "object gyro" else gyr
+        np.savez(path, rate=rate, gyr=g, acc=acc)
+    assert main(["replay", str(path), "-e", "mahony"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"attitude-bridge replay: error: {path}: ")
+    assert expected in err
+
+
+@pytest.mark.parametrize("damage", ["dead accelerometer", "gyro 1e308"])
+def test_damaged_samples_leak_no_numpy_warnings(data_dir, tmp_path, capsys, damage):
+    """numpy's RuntimeWarnings ("All-NaN slice", "overflow encountered in multiply") used
+    to reach the user's terminal; the damage is said in the replay's own words."""
+    path = tmp_path / "trial.csv"
+    broad_as_csv(data_dir, path, rows=600)
+    text = path.read_text().splitlines()
+    first = next(i for i, line in enumerate(text) if line.startswith("t,")) + 1
+    for i in range(first, len(text)):
+        cells = text[i].split(",")
+        if damage == "dead accelerometer":
+            cells[4:7] = ["0", "0", "0"]
+        elif i == first + 300:
+            cells[1] = "1e308"
+        text[i] = ",".join(cells)
+    path.write_text("\n".join(text) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert main(["replay", str(path), "-e", "eskf"]) == 0
+    out = capsys.readouterr().out
+    assert ("|acc| at rest is 0.00 m/s²" in out if damage == "dead accelerometer"
+            else "samples skipped" in out)
+
+
+@pytest.mark.parametrize("rows", [2, 50, 150])
+def test_a_log_shorter_than_the_handling_window_replays(data_dir, tmp_path, capsys, rows):
+    """Under 0.5 s of samples (the phases' gyro smoothing window) used to fail with numpy's
+    "operands could not be broadcast together" and no file name."""
+    path = tmp_path / "short.csv"
+    broad_as_csv(data_dir, path, rows=rows)
+    assert main(["replay", str(path), "-e", "eskf"]) == 0
+    assert "eskf " in capsys.readouterr().out
+
+
+def test_csv_rows_with_a_wrong_number_of_cells_are_dropped_and_counted(data_dir, tmp_path,
+                                                                       capsys):
+    """A CSV cut mid-row (or with a short row inside) used to be refused whole: "malformed
+    CSV (Some errors were detected ! Line #1154 ...)"."""
+    path = tmp_path / "trial.csv"
+    broad_as_csv(data_dir, path, rows=3000)
+    text = path.read_text().splitlines()
+    text[99] = ",".join(text[99].split(",")[:5])  # line 100: five cells of fifteen
+    text[-1] = text[-1][:17]  # and the file cut inside its last row
+    path.write_text("\n".join(text))
+    rec = load(path)
+    assert rec.n == 2998
+    assert rec.notes == ("CSV: 2 rows with a wrong number of cells dropped (first at line "
+                         "100)",)
+    assert main(["replay", str(path), "-e", "mahony"]) == 0
+    assert "note: CSV: 2 rows with a wrong number of cells dropped" in capsys.readouterr().out
+
+
+def test_csv_written_by_excel_with_a_byte_order_mark_reads(data_dir, tmp_path):
+    path = tmp_path / "trial.csv"
+    broad_as_csv(data_dir, path, rows=300)
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    assert load(path).n == 300
 
 
 @pytest.mark.parametrize("kind", ["ulog", "tlog", "csv"])

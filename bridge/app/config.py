@@ -183,7 +183,7 @@ class BridgeConfig:
                 load_signing_key(self.signing_key)
             except ValueError as exc:
                 raise ValueError(f"--signing-key {self.signing_key}: {exc}") from None
-        if self.connect:
+        if self.connect is not None:  # "" (an unset shell variable) is no emulator request
             parse_url(self.connect)
         for url in self.outs:
             parse_url(url)

@@ -37,6 +37,11 @@ def check_types(cfg: Any) -> None:
             raise ValueError(f"setting {f.name!r} must be {kind}, got {value!r}")
 
 
+#: The fastest IMU stream the bridge takes (an ICM-42688 samples at 32 kHz, but no
+#: autopilot streams MAVLink faster than a few kHz); the per-vehicle buffers scale with it.
+MAX_IMU_RATE_HZ = 10_000.0
+
+
 def check_ranges(cfg: Any) -> None:
     """Numbers finite, positive where a zero makes no sense, ids in range."""
     for f in dataclasses.fields(cfg):
@@ -50,6 +55,11 @@ def check_ranges(cfg: Any) -> None:
     for name in positive:
         if not getattr(cfg, name) > 0:
             raise ValueError(f"setting {name!r} must be positive, got {getattr(cfg, name)!r}")
+    if not cfg.imu_rate <= MAX_IMU_RATE_HZ:  # the ring buffers are sized by it
+        raise ValueError(f"setting 'imu_rate' must be at most {MAX_IMU_RATE_HZ:g} Hz, "
+                         f"got {cfg.imu_rate!r}")
+    if cfg.emulator_seed < 0:
+        raise ValueError(f"emulator seed must not be negative, got {cfg.emulator_seed}")
     for name in ("reorder_s", "reinit_settle_s", "mqtt_rate"):
         if getattr(cfg, name) < 0:
             raise ValueError(f"setting {name!r} must not be negative")

@@ -15,14 +15,16 @@ Format (one header row of column names, then one row per IMU sample)::
 * ``qw qx qy qz`` optional reference attitude [w, x, y, z], body -> world, on the same
   rows; empty or NaN where unknown
 * ``score`` optional 0/1: which rows count for the RMSE (default all)
-* a row with a cell that is not a number (``abc``, ``1.2.3``) is dropped; the recording's
-  notes say how many and the first one's line
+* a row with a cell that is not a number (``abc``, ``1.2.3``) or with more or fewer cells
+  than the header (a file cut mid-row) is dropped; the recording's notes say how many
+  and the first one's line
 
 Lines starting with ``#`` are comments, apart from the ``key: value`` settings above.
 """
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -43,14 +45,21 @@ def read(path: Path, reference: str = "auto") -> Recording:
         raise ReplayInputError(f"{path}: no IMU samples found (CSV lacks columns {missing}; "
                                f"expected {','.join(IMU_COLUMNS)}[,mx,my,mz][,qw,qx,qy,qz]"
                                f"[,score])")
-    try:
-        table = np.genfromtxt(path, delimiter=",", skip_header=body_start, comments="#",
-                              dtype=float, ndmin=2, filling_values=np.nan)
-    except ValueError as exc:
-        raise ReplayInputError(f"{path}: malformed CSV ({exc})") from exc
-    if table.size == 0 or table.shape[1] != len(header):
+    lines = _data_lines(path, body_start)
+    if not lines:
+        raise ReplayInputError(f"{path}: no data rows after the header")
+    # A row with more or fewer cells than the header (a file cut mid-row, two lines run
+    # together) cannot be paired with the columns: dropped and counted, like a row with
+    # a cell that is no number.
+    ragged = [number for number, cells in lines if len(cells) != len(header)]
+    lines = [(number, cells) for number, cells in lines if len(cells) == len(header)]
+    if not lines:
         raise ReplayInputError(f"{path}: rows must have {len(header)} values like the header")
-    table, damage = _drop_non_numeric_rows(path, body_start, table)
+    text = io.StringIO("\n".join(",".join(cells) for _, cells in lines))
+    table = np.genfromtxt(text, delimiter=",", dtype=float, ndmin=2, filling_values=np.nan)
+    table, damage = _drop_non_numeric_rows(table, lines)
+    notes = tuple(n for n in (_dropped_note(ragged, "with a wrong number of cells"), damage)
+                  if n)
 
     def cols(names: tuple[str, ...]) -> np.ndarray | None:
         if not all(n in header for n in names):
@@ -70,7 +79,7 @@ def read(path: Path, reference: str = "auto") -> Recording:
         t_raw, cols(("gx", "gy", "gz")), cols(("ax", "ay", "az")), *extra)
     if len(t) < 2:
         raise ReplayInputError(f"{path}: fewer than 2 IMU rows with increasing time"
-                               + (f"; {damage}" if damage else ""))
+                               + "".join(f"; {n}" for n in notes))
     mag = rest.pop(0) if "mx" in header and all(c in header for c in MAG_COLUMNS) else None
     q = rest.pop(0) if all(c in header for c in REF_COLUMNS) else None
     score = rest.pop(0)[:, 0] > 0.5 if "score" in header else None
@@ -79,37 +88,38 @@ def read(path: Path, reference: str = "auto") -> Recording:
     warning = magnitude_warning(acc, "the CSV's ax,ay,az")
     return Recording(path=path, format="csv", t=t, gyr=gyr, acc=acc, mag=mag, world=world,
                      body="FRD", source="csv", reference=ref, score_mask=score,
-                     cleanup=cleanup, notes=(damage,) if damage else (),
+                     cleanup=cleanup, notes=notes,
                      warnings=(warning,) if warning else (), references=references)
 
 
-def _drop_non_numeric_rows(path: Path, body_start: int, table: np.ndarray
+def _drop_non_numeric_rows(table: np.ndarray, lines: list[tuple[int, list[str]]]
                            ) -> tuple[np.ndarray, str]:
     """The table without rows that have a cell that is no number, and a note saying how
-    many and where the first is ("" when none).
+    many and where the first is ("" when none); ``lines`` are the table's rows as text.
 
     genfromtxt reads such a cell ("1.2.3", "abc", a line garbled by a crash) as NaN,
     like an empty cell or a written "nan", which mean "unknown" in this format. Only the
     rows that hold a NaN are looked at again as text, to tell the two apart.
     """
     suspects = np.flatnonzero(np.isnan(table).any(axis=1))
-    if not suspects.size:
-        return table, ""
-    lines = _data_lines(path, body_start)
     bad = [k for k in suspects.tolist() if not all(map(_number_or_empty, lines[k][1]))]
-    if not bad:
-        return table, ""
-    rows = "row" if len(bad) == 1 else "rows"
     return (np.delete(table, bad, axis=0),
-            f"CSV: {len(bad)} {rows} with non-numeric cells dropped (first at line "
-            f"{lines[bad[0]][0]})")
+            _dropped_note([lines[k][0] for k in bad], "with non-numeric cells"))
+
+
+def _dropped_note(line_numbers: list[int], why: str) -> str:
+    """"CSV: N rows <why> dropped (first at line L)", or "" for none."""
+    if not line_numbers:
+        return ""
+    rows = "row" if len(line_numbers) == 1 else "rows"
+    return f"CSV: {len(line_numbers)} {rows} {why} dropped (first at line {line_numbers[0]})"
 
 
 def _data_lines(path: Path, body_start: int) -> list[tuple[int, list[str]]]:
     """(line number, cells) of each data row, skipping what genfromtxt skips: the lines
     up to the header, comments (from ``#`` on) and blank lines."""
     out = []
-    with path.open("r", encoding="utf-8", errors="replace") as f:
+    with path.open("r", encoding="utf-8-sig", errors="replace") as f:
         for number, line in enumerate(f, start=1):
             text = line.split("#", 1)[0].strip()
             if number > body_start and text:
@@ -131,7 +141,7 @@ def _number_or_empty(cell: str) -> bool:
 def _preamble(path: Path) -> tuple[dict[str, str], list[str], int]:
     """``# key: value`` settings, the header's column names, and the header's line count."""
     settings: dict[str, str] = {}
-    with path.open("r", encoding="utf-8", errors="replace") as f:
+    with path.open("r", encoding="utf-8-sig", errors="replace") as f:  # Excel writes a BOM
         for number, line in enumerate(f):
             text = line.strip()
             if not text:

@@ -23,19 +23,27 @@ def read(path: Path, reference: str = "auto") -> Recording:
         data = np.load(path, allow_pickle=False)
     except Exception as exc:
         raise ReplayInputError(f"{path}: not a readable .npz file ({exc})") from exc
+    if not isinstance(data, np.lib.npyio.NpzFile):  # a lone .npy array renamed .npz
+        raise ReplayInputError(f"{path}: not a .npz archive (a single .npy array); a "
+                               f"BROAD-style .npz has rate, gyr, acc[, mag, quat_ref, "
+                               f"movement]")
     with data:
         missing = [k for k in REQUIRED if k not in data.files]
         if missing:
             raise ReplayInputError(f"{path}: no IMU samples found (missing keys {missing}; "
                                    f"a BROAD-style .npz has rate, gyr, acc[, mag, quat_ref, "
                                    f"movement])")
-        rate = float(data["rate"])
-        gyr = np.asarray(data["gyr"], dtype=float)
-        acc = np.asarray(data["acc"], dtype=float)
-        mag = np.asarray(data["mag"], dtype=float) if "mag" in data.files else None
-        q_ref = np.asarray(data["quat_ref"], dtype=float) if "quat_ref" in data.files else None
-        movement = (np.asarray(data["movement"], dtype=bool)
-                    if "movement" in data.files else None)
+        try:
+            rate = _scalar(data["rate"])
+            gyr = np.asarray(data["gyr"], dtype=float)
+            acc = np.asarray(data["acc"], dtype=float)
+            mag = np.asarray(data["mag"], dtype=float) if "mag" in data.files else None
+            q_ref = (np.asarray(data["quat_ref"], dtype=float)
+                     if "quat_ref" in data.files else None)
+            movement = (np.asarray(data["movement"], dtype=bool)
+                        if "movement" in data.files else None)
+        except (TypeError, ValueError) as exc:  # text or object arrays, a vector rate
+            raise ReplayInputError(f"{path}: not a BROAD-style .npz ({exc})") from exc
     if not (np.isfinite(rate) and rate > 0):
         raise ReplayInputError(f"{path}: rate must be a positive number, got {rate}")
     _check_shapes(path, gyr, {"acc": acc, "mag": mag, "quat_ref": q_ref,
@@ -49,6 +57,14 @@ def read(path: Path, reference: str = "auto") -> Recording:
                      body="sensor", source="npz gyr/acc/mag", reference=ref,
                      score_mask=movement, cleanup=TimeCleanup(kept=len(t)),
                      warnings=(warning,) if warning else (), references=references)
+
+
+def _scalar(value: np.ndarray) -> float:
+    """``rate`` as one number (a 0-d or one-element array); ValueError otherwise."""
+    arr = np.asarray(value, dtype=float)
+    if arr.size != 1:
+        raise ValueError(f"rate must be one number, got an array of shape {arr.shape}")
+    return float(arr.reshape(()))
 
 
 def _check_shapes(path: Path, gyr: np.ndarray, others: dict[str, np.ndarray | None]) -> None:

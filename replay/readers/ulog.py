@@ -11,7 +11,9 @@ the GPS position and UTC date (for the declination) and the velocity (for aiding
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
+import io
 import mmap
 from pathlib import Path
 
@@ -43,12 +45,17 @@ def read(path: Path, reference: str = "auto") -> Recording:
     from pyulog import ULog  # imported here: only ULog users pay for it
 
     try:
-        ulog = ULog(str(path))
+        # pyulog prints its corruption notices; this reader says them in its notes
+        with contextlib.redirect_stdout(io.StringIO()):
+            ulog = ULog(str(path))
     except Exception as exc:  # pyulog raises bare Exceptions on corrupt headers
         raise ReplayInputError(f"{path}: not a readable ULog file ({exc})") from exc
     topics = {(d.name, d.multi_id): d.data for d in ulog.data_list}
     cut = _bytes_after_last_message(path)
     damage = f"ULog ends inside a message: last {cut} bytes ignored" if cut else ""
+    if not cut and ulog.file_corruption:
+        damage = ("ULog damaged inside: pyulog skipped to the next message it could read "
+                  "(the samples in between are lost)")
 
     imu = topics.get(("sensor_combined", 0))
     require_imu(0 if imu is None else len(imu["timestamp"]), path, "ULog topic sensor_combined",

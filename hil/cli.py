@@ -13,6 +13,7 @@ from dataclasses import fields
 from pathlib import Path
 
 from bridge.app.cli import seconds  # the command line's shared option types
+from bridge.app.config_checks import check_output_file
 
 from .config import IMU_MESSAGES, EmulatorConfig
 from .environment import HOME_ALT_M, HOME_LAT_DEG, HOME_LON_DEG, Environment
@@ -146,6 +147,8 @@ def config_from_args(args: argparse.Namespace) -> EmulatorConfig:
 def _run(args: argparse.Namespace) -> int:
     try:
         targets = [parse_target(t) for t in args.target]
+        if args.stats_json:  # before streaming, not after it
+            check_output_file(args.stats_json, "--stats-json")
         config = config_from_args(args)
         emulator = Emulator(config)
         SampleSource(config)  # builds the profile: a bad profile or drag fails here

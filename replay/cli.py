@@ -9,6 +9,8 @@ import os
 import sys
 from pathlib import Path
 
+from bridge.app.config_checks import check_output_file as check_writable_file
+
 from .dataset import ReplayInputError
 
 _REFERENCE_HELP = ("which reference to score against: auto (truth when the file has it, "
@@ -143,13 +145,10 @@ def check_output_file(path: Path | None, option: str) -> None:
     """Refuse an output path before any work: its folder must exist and be writable."""
     if path is None:
         return
-    folder = path.parent if str(path.parent) else Path(".")
-    if path.is_dir():
-        raise ReplayInputError(f"{option} {path}: is a folder, expected a file name")
-    if not folder.is_dir():
-        raise ReplayInputError(f"{option} {path}: folder {folder} does not exist")
-    if not os.access(folder, os.W_OK):
-        raise ReplayInputError(f"{option} {path}: folder {folder} is not writable")
+    try:
+        check_writable_file(path, option)
+    except ValueError as exc:
+        raise ReplayInputError(str(exc)) from None
 
 
 def check_output_dir(path: Path | None, option: str) -> None:

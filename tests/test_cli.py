@@ -54,6 +54,10 @@ def bad_inputs(tmp: Path, busy: int) -> list[tuple[list[str], str]]:
         (["demo", "--profile", "wobble"], "unknown profile 'wobble'"),
         (["demo", "--imu-rate", "1e9"], "at most 10000 Hz"),
         (["run", "--connect", ""], "bad connection URL ''"),
+        # a folder that exists but takes no file (access() says writable): before any work
+        (["hil", "--target", "udp:127.0.0.1:9", "--duration", "5", "--stats-json",
+          "/proc/stats.json"], "cannot be written"),
+        (["replay", str(log), "--json", "/proc/r.json"], "cannot be written"),
         (["demo", "--seed", "-5"], "seed must not be negative"),
         (["hil", "--target", "udp:127.0.0.1:9", "--clock-drift-ppm", "nan"], "clock drift"),
         (["hil", "--target", "udp:127.0.0.1:9", "--clock-drift-ppm", "1e9"], "clock drift"),

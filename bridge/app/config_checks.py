@@ -89,6 +89,14 @@ def check_output_file(path: str | Path, option: str) -> None:
         raise ValueError(f"{option} {p}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK):
         raise ValueError(f"{option} {p}: folder {folder} is not writable")
+    existed = p.exists()
+    try:  # what access() cannot tell: /proc, a read-only mount, a full quota
+        with p.open("a"):
+            pass
+    except OSError as exc:
+        raise ValueError(f"{option} {p}: cannot be written ({exc.strerror})") from None
+    if not existed:
+        p.unlink(missing_ok=True)
 
 
 def parse_source(text: str) -> tuple[int, int]:

@@ -100,6 +100,7 @@ def px4_flight():
     return cfg, *run_with_requests(cfg, requests, after_s=1.0)
 
 
+@pytest.mark.xdist_group("hil_px4_flight")  # one worker builds the fixture once
 def test_px4_heartbeat_and_default_streams(px4_flight):
     _cfg, _, rx, sent_at = px4_flight
     hb = rx.of_type("HEARTBEAT")[0]
@@ -110,6 +111,7 @@ def test_px4_heartbeat_and_default_streams(px4_flight):
     assert np.all(np.diff(before) == 20_000)  # 50 Hz until asked
 
 
+@pytest.mark.xdist_group("hil_px4_flight")  # one worker builds the fixture once
 def test_px4_refuses_raw_imu_and_honours_the_highres_rate(px4_flight):
     cfg, emu, rx, sent_at = px4_flight
     got = acks(rx)
@@ -146,6 +148,7 @@ def test_px4_refuses_raw_imu_and_honours_the_highres_rate(px4_flight):
     assert all((b - a) % 256 == 1 for a, b in itertools.pairwise(seqs))
 
 
+@pytest.mark.xdist_group("hil_px4_flight")  # one worker builds the fixture once
 def test_px4_highres_imu_is_si_frd_with_its_bias_removed(px4_flight):
     cfg, _, rx, _ = px4_flight
     msgs = rx.of_type("HIGHRES_IMU")
@@ -168,6 +171,7 @@ def test_px4_highres_imu_is_si_frd_with_its_bias_removed(px4_flight):
     assert np.mean(fields & 0x200 == 0x200) > 0.2  # 50 Hz barometer
 
 
+@pytest.mark.xdist_group("hil_px4_flight")  # one worker builds the fixture once
 def test_px4_onboard_attitude_is_stamped_and_close_to_the_truth(px4_flight):
     _cfg, _, rx, _ = px4_flight
     truth = truth_by_ms(rx)
@@ -189,6 +193,7 @@ def test_px4_onboard_attitude_is_stamped_and_close_to_the_truth(px4_flight):
     assert np.all(np.abs(euler[:, 2]) <= math.pi)
 
 
+@pytest.mark.xdist_group("hil_px4_flight")  # one worker builds the fixture once
 def test_px4_declination_parameter_is_the_wmm_value(px4_flight):
     cfg, *_, rx, _ = px4_flight
     (pv,) = rx.of_type("PARAM_VALUE")
@@ -208,6 +213,7 @@ def ardupilot():
     return cfg, *run_with_requests(cfg, requests, after_s=0.5)
 
 
+@pytest.mark.xdist_group("hil_ardupilot_flight")  # one worker builds the fixture once
 def test_ardupilot_raw_imu_in_its_units(ardupilot):
     cfg, _, rx, _sent_at = ardupilot
     hb = rx.of_type("HEARTBEAT")[0]
@@ -229,6 +235,7 @@ def test_ardupilot_raw_imu_in_its_units(ardupilot):
     assert s2 and s2[0].time_boot_ms in (rec.time_us // 1000).tolist()
 
 
+@pytest.mark.xdist_group("hil_ardupilot_flight")  # one worker builds the fixture once
 def test_ardupilot_answers_and_rates(ardupilot):
     cfg, _emu, rx, sent_at = ardupilot
     assert acks(rx) == {SET_INTERVAL: [mavlink.MAV_RESULT_FAILED, mavlink.MAV_RESULT_ACCEPTED]}

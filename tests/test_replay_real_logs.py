@@ -120,6 +120,7 @@ def take_off_time(rec) -> float:
     return float(t[np.argmax(height > ground + 0.5)])
 
 
+@pytest.mark.xdist_group("sih_box_log")  # one worker builds the fixture once
 def test_sih_truth_aligned_by_arrival_matches_px4s_own_accuracy(sih_box):
     """PX4's own EKF2 attitude against the truth placed by arrival: the accuracy measured
     for it by hand (1.70° total / 1.08° inclination) with no lag left over."""
@@ -137,6 +138,7 @@ def test_sih_truth_aligned_by_arrival_matches_px4s_own_accuracy(sih_box):
     assert why == "" and abs(lag) < 0.005
 
 
+@pytest.mark.xdist_group("sih_box_log")  # one worker builds the fixture once
 def test_sih_scores_against_truth_in_true_north(sih_box):
     from pygeomag import GeoMag
 

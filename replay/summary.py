@@ -72,12 +72,16 @@ def table_lines(ev: Evaluation, scores: dict | None = None) -> list[str]:
     for k, ((head, reason), who) in enumerate(notes.items(), start=1):
         scope = "" if len(who) == len(labels) else f" [{', '.join(who)}]"
         lines.append(f"  ({k}) {head}{scope}: {reason}")
-    skipped = {label: s.skipped for label, s in scores.items() if s.skipped}
-    if skipped:
-        lines.append("  note: samples skipped (gyro not finite or beyond twice its full "
-                     "scale, or a bad time step): "
-                     + ", ".join(f"{label} {n}" for label, n in skipped.items()))
     return lines
+
+
+def skipped_lines(ev: Evaluation) -> list[str]:
+    """The samples each estimator could not use at all (said once, under the scores)."""
+    skipped = {label: s.skipped for label, s in ev.scores.items() if s.skipped}
+    if not skipped:
+        return []
+    return ["  note: samples skipped (gyro not finite or beyond twice its full scale, or a "
+            "bad time step): " + ", ".join(f"{label} {n}" for label, n in skipped.items())]
 
 
 def phase_lines(ev: Evaluation) -> list[str]:
@@ -108,5 +112,6 @@ def smoothed_lines(ev: Evaluation) -> list[str]:
 
 def print_summary(ev: Evaluation, stream: TextIO | None = None) -> None:
     out = stream if stream is not None else sys.stdout
-    for line in header_lines(ev) + table_lines(ev) + phase_lines(ev) + smoothed_lines(ev):
+    for line in (header_lines(ev) + table_lines(ev) + skipped_lines(ev) + phase_lines(ev)
+                 + smoothed_lines(ev)):
         print(line, file=out)

@@ -25,6 +25,8 @@ Lines starting with ``#`` are comments, apart from the ``key: value`` settings a
 from __future__ import annotations
 
 import io
+import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -45,19 +47,9 @@ def read(path: Path, reference: str = "auto") -> Recording:
         raise ReplayInputError(f"{path}: no IMU samples found (CSV lacks columns {missing}; "
                                f"expected {','.join(IMU_COLUMNS)}[,mx,my,mz][,qw,qx,qy,qz]"
                                f"[,score])")
-    lines = _data_lines(path, body_start)
-    if not lines:
-        raise ReplayInputError(f"{path}: no data rows after the header")
-    # A row with more or fewer cells than the header (a file cut mid-row, two lines run
-    # together) cannot be paired with the columns: dropped and counted, like a row with
-    # a cell that is no number.
-    ragged = [number for number, cells in lines if len(cells) != len(header)]
-    lines = [(number, cells) for number, cells in lines if len(cells) == len(header)]
-    if not lines:
-        raise ReplayInputError(f"{path}: rows must have {len(header)} values like the header")
-    text = io.StringIO("\n".join(",".join(cells) for _, cells in lines))
-    table = np.genfromtxt(text, delimiter=",", dtype=float, ndmin=2, filling_values=np.nan)
-    table, damage = _drop_non_numeric_rows(table, lines)
+    table, lines, ragged = _read_table(path, body_start, len(header))
+    table, damage = _drop_non_numeric_rows(
+        table, lambda: lines if lines is not None else _data_lines(path, body_start))
     notes = tuple(n for n in (_dropped_note(ragged, "with a wrong number of cells"), damage)
                   if n)
 
@@ -92,16 +84,53 @@ def read(path: Path, reference: str = "auto") -> Recording:
                      warnings=(warning,) if warning else (), references=references)
 
 
-def _drop_non_numeric_rows(table: np.ndarray, lines: list[tuple[int, list[str]]]
+def _read_table(path: Path, body_start: int, columns: int
+                ) -> tuple[np.ndarray, list[tuple[int, list[str]]] | None, list[int]]:
+    """The data rows as floats, the rows as text when they had to be read so, and the
+    line numbers of rows dropped for another number of cells than the header's.
+
+    A row with more or fewer cells (a file cut mid-row, two lines run together) cannot
+    be paired with the columns: it is dropped and counted, like a row with a cell that
+    is no number. genfromtxt refuses the whole file for one, so only then is the file
+    read line by line (slower) and the rows that fit handed to it.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "Empty input file": said below in our words
+        try:
+            table = np.genfromtxt(path, delimiter=",", skip_header=body_start,
+                                  comments="#", dtype=float, ndmin=2,
+                                  filling_values=np.nan)
+            if table.size and table.shape[1] == columns:
+                return table, None, []
+        except ValueError:
+            pass
+    lines = _data_lines(path, body_start)
+    if not lines:
+        raise ReplayInputError(f"{path}: no data rows after the header")
+    ragged = [number for number, cells in lines if len(cells) != columns]
+    lines = [(number, cells) for number, cells in lines if len(cells) == columns]
+    if not lines:
+        raise ReplayInputError(f"{path}: rows must have {columns} values like the header")
+    text = io.StringIO("\n".join(",".join(cells) for _, cells in lines))
+    table = np.genfromtxt(text, delimiter=",", dtype=float, ndmin=2, filling_values=np.nan)
+    return table, lines, ragged
+
+
+def _drop_non_numeric_rows(table: np.ndarray,
+                           rows_as_text: Callable[[], list[tuple[int, list[str]]]]
                            ) -> tuple[np.ndarray, str]:
     """The table without rows that have a cell that is no number, and a note saying how
-    many and where the first is ("" when none); ``lines`` are the table's rows as text.
+    many and where the first is ("" when none); ``rows_as_text`` gives the table's rows
+    as (line number, cells), called only when a row holds a NaN.
 
     genfromtxt reads such a cell ("1.2.3", "abc", a line garbled by a crash) as NaN,
     like an empty cell or a written "nan", which mean "unknown" in this format. Only the
     rows that hold a NaN are looked at again as text, to tell the two apart.
     """
     suspects = np.flatnonzero(np.isnan(table).any(axis=1))
+    if not suspects.size:
+        return table, ""
+    lines = rows_as_text()
     bad = [k for k in suspects.tolist() if not all(map(_number_or_empty, lines[k][1]))]
     return (np.delete(table, bad, axis=0),
             _dropped_note([lines[k][0] for k in bad], "with non-numeric cells"))

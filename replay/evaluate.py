@@ -252,6 +252,18 @@ def is_six_d(rec: Recording, name: str) -> bool:
     return rec.mag is None or not getattr(cls, "uses_magnetometer", True)
 
 
+def never_started(run: Run, running: np.ndarray) -> str:
+    """Why an estimator has no attitude on any scored sample, from its sample counts."""
+    c = run.counters
+    if c.samples and c.skipped == c.samples:
+        return ("the estimator skipped every sample (gyro not finite or beyond twice its "
+                "full scale, or a bad time step)")
+    if not running.any() and c.acc_unusable >= c.samples - c.skipped:
+        return ("the estimator never started: no usable accelerometer sample (NaN, about "
+                "zero or saturated) to start from")
+    return "the estimator never started on a scored sample"
+
+
 def score(prep: Prepared, run: Run, six_d: bool | None = None) -> Score:
     """``six_d``: judge on inclination only (default: :func:`is_six_d` of the run's
     estimator; given for an attitude that is no estimator of ours, the autopilot's)."""
@@ -264,7 +276,7 @@ def score(prep: Prepared, run: Run, six_d: bool | None = None) -> Score:
     mag_rej = float(np.count_nonzero(run.flags[running] & estimators.base._core.F_MAG_REJECTED))
     nan = float("nan")
     if prep.q_ref is None or not keep.any():
-        why = prep.unscored or "the estimator never started on a scored sample"
+        why = prep.unscored or never_started(run, running)
         return Score(nan, nan, nan, nan, nan, nan, nan, nan, 0, acc_rej / n_run,
                      mag_rej / n_run, run.counters.skipped, run.seconds, six_d,
                      {c: why for c in SCORE_COLUMNS})

@@ -307,6 +307,24 @@ def test_damaged_samples_leak_no_numpy_warnings(data_dir, tmp_path, capsys, dama
             else "samples skipped" in out)
 
 
+@pytest.mark.parametrize(("damage", "reason"), [
+    ("gyro all NaN", "the estimator skipped every sample (gyro not finite"),
+    ("accelerometer all zero", "the estimator never started: no usable accelerometer sample"),
+])
+def test_an_estimator_that_never_starts_says_why(tmp_path, capsys, damage, reason):
+    """It used to say only "never started on a scored sample", whatever the cause."""
+    n = 400
+    gyr, acc = np.zeros((n, 3)), np.tile([0.0, 0.0, 9.81], (n, 1))
+    if damage == "gyro all NaN":
+        gyr[:] = np.nan
+    else:
+        acc[:] = 0.0
+    path = tmp_path / "trial.npz"
+    np.savez(path, rate=100.0, gyr=gyr, acc=acc, quat_ref=np.tile([1.0, 0, 0, 0], (n, 1)))
+    assert main(["replay", str(path), "-e", "mahony"]) == 0
+    assert f"(1) total°: {reason}" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("rows", [2, 50, 150])
 def test_a_log_shorter_than_the_handling_window_replays(data_dir, tmp_path, capsys, rows):
     """Under 0.5 s of samples (the phases' gyro smoothing window) used to fail with numpy's

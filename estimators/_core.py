@@ -446,8 +446,9 @@ def _make_process(step, takes_velocity: bool):
         counters[C_SAMPLES] += 1
         initialised = F_INITIALISED if state[INIT] > 0.0 else 0
         grange = common[P_GYR_RANGE]
-        glim = GYR_CORRUPT_FACTOR * grange
-        if not finite3(gx, gy, gz) or abs(gx) > glim or abs(gy) > glim or abs(gz) > glim:
+        corrupt = GYR_CORRUPT_FACTOR * grange
+        if not finite3(gx, gy, gz) or abs(gx) > corrupt or abs(gy) > corrupt \
+                or abs(gz) > corrupt:
             counters[C_SKIPPED] += 1
             return F_SKIPPED | initialised
         if not (dt > 0.0 and dt <= common[P_MAX_DT]):

@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -46,14 +47,64 @@ def turned_forward(q: np.ndarray, gyr: np.ndarray, bias: np.ndarray, delay: floa
     return Q.multiply(q, Q.from_rotvec(rate * delay))
 
 
-def param(default: float, doc: str) -> Any:
+def param(default: float | bool | str, doc: str) -> Any:
     """A dataclass field for an estimator parameter, with its unit/meaning in ``doc``."""
     return field(default=default, metadata={"doc": doc})
 
 
+#: Unit (the doc's first bracket) -> (suffix of its degree alias, unit in degrees).
+DEGREE_UNITS = {"rad": ("_deg", "deg"), "rad/s": ("_dps", "deg/s")}
+_UNIT = re.compile(r"\[([^\]]*)\]")
+
+
+def doc_unit(f: dataclasses.Field) -> str | None:
+    """The unit a parameter's doc gives first (``[rad/s]`` -> ``rad/s``), if any."""
+    unit = _UNIT.search(f.metadata.get("doc", ""))
+    return None if unit is None else unit.group(1).strip()
+
+
+def _shown(f: dataclasses.Field, value: float) -> str:
+    """A value as the user typed it: angles also in degrees, under their alias."""
+    degrees = DEGREE_UNITS.get(doc_unit(f) or "")
+    if degrees is None or not math.isfinite(value):
+        return f"{value:g}"
+    return f"{value:g} ({math.degrees(value):g} {degrees[1]}, as {f.name}{degrees[0]})"
+
+
+def check_param_value(f: dataclasses.Field, value: Any,
+                      bounds: tuple[float, float] | None) -> None:
+    """ValueError (one line, naming the parameter in the user's units) for a value outside
+    the parameter's kind: a flag that is not 0/1, a number outside ``bounds``."""
+    if isinstance(f.default, bool):
+        if not (isinstance(value, bool) or value in (0, 1)):
+            raise ValueError(f"parameter {f.name!r} is a flag: 0/1 or true/false, "
+                             f"got {value!r}")
+        return
+    if bounds is None or isinstance(value, str) or not isinstance(f.default, int | float):
+        return
+    lo, hi = bounds
+    if not lo <= float(value) <= hi:
+        unit = doc_unit(f) or ""
+        span = f"{lo:g}..{hi:g}" + (f" {unit}" if unit else "")
+        degrees = DEGREE_UNITS.get(unit)
+        if degrees is not None:
+            span += f" ({math.degrees(lo):g}..{math.degrees(hi):g} {degrees[1]})"
+        raise ValueError(f"parameter {f.name!r} must be within {span}, "
+                         f"got {_shown(f, float(value))}")
+
+
 @dataclass(frozen=True)
 class CommonParams:
-    """Sensor limits shared by every estimator (samples beyond them are not trusted)."""
+    """Sensor limits shared by every estimator (samples beyond them are not trusted).
+
+    ``BOUNDS`` (a subclass extends it): parameter -> the inclusive range, in its doc's
+    unit, of values that still mean something. The ranges are wide — a user may set a
+    poor value, not an absurd one — and exist because past them the filters'
+    arithmetic breaks without a word: a noise of 1e-200 squares to zero and is divided
+    by, one of 1e308 squares to infinity and every later sample is rejected, so the
+    estimate is garbage and nothing says so."""
+
+    BOUNDS: ClassVar[dict[str, tuple[float, float]]] = {}
 
     acc_range: float = param(16 * G, "accelerometer full scale [m/s^2]; an axis at it is "
                                      "saturated and the sample's accelerometer is unused")
@@ -76,20 +127,24 @@ class CommonParams:
 def _check_common(p: CommonParams) -> None:
     """ValueError for common parameters no estimator can work with (an infinite
     declination makes NaN quaternions, a negative max_dt skips every sample)."""
+    fields = {f.name: f for f in dataclasses.fields(p)}
+
+    def shown(name: str) -> str:
+        return _shown(fields[name], float(getattr(p, name)))
+
     for name in ("acc_range", "gyr_range", "max_dt", "declination", "aid_timeout",
                  "imu_delay"):
-        value = float(getattr(p, name))
-        if not math.isfinite(value):
-            raise ValueError(f"parameter {name!r} must be finite, got {value!r}")
+        if not math.isfinite(float(getattr(p, name))):
+            raise ValueError(f"parameter {name!r} must be finite, got {shown(name)}")
     for name in ("acc_range", "gyr_range", "max_dt", "aid_timeout"):
         if not float(getattr(p, name)) > 0.0:
-            raise ValueError(f"parameter {name!r} must be positive, got {getattr(p, name)!r}")
+            raise ValueError(f"parameter {name!r} must be positive, got {shown(name)}")
     if not 0.0 <= float(p.imu_delay) <= MAX_IMU_DELAY_S:
         raise ValueError(f"parameter 'imu_delay' must be within 0..{MAX_IMU_DELAY_S} s, "
-                         f"got {p.imu_delay!r}")
+                         f"got {shown('imu_delay')}")
     if abs(float(p.declination)) > math.pi:
-        raise ValueError(f"parameter 'declination' must be within ±pi rad, "
-                         f"got {p.declination!r}")
+        raise ValueError(f"parameter 'declination' must be within ±pi rad (±180 deg), "
+                         f"got {shown('declination')}")
 
 
 @dataclass(frozen=True)
@@ -204,6 +259,8 @@ class Estimator:
                 raise ValueError(f"parameter {key!r} must be a number, got {value!r}")
         made = cls.Params(**params)
         _check_common(made)
+        for f in dataclasses.fields(made):
+            check_param_value(f, getattr(made, f.name), made.BOUNDS.get(f.name))
         return made
 
     @property

@@ -107,11 +107,12 @@ import dataclasses
 import math
 from collections import namedtuple
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
 from . import _core
-from .base import CommonParams, Estimator, G, param
+from .base import MAX_IMU_DELAY_S, CommonParams, Estimator, G, param
 from .registry import register
 
 _DEG = math.pi / 180.0
@@ -133,6 +134,36 @@ _TH, _BI, _VE, _MU = 0, 3, 6, 9
 
 @dataclass(frozen=True)
 class EskfParams(CommonParams):
+    BOUNDS: ClassVar[dict[str, tuple[float, float]]] = {
+        # durations and time constants [s]
+        "update_period": (1e-4, 1.0), "velocity_scale_tau": (0.0, 1e4),
+        "velocity_reset_time": (0.01, 1e4), "flight_evidence_time": (1e-3, 1e4),
+        "flight_switch_time": (0.1, 1e6), "mag_delay": (0.0, MAX_IMU_DELAY_S),
+        "mag_ref_time": (0.0, 1e4), "mag_provisional_time": (0.0, math.inf),
+        "mag_new_time": (0.0, 1e4), "mag_reset_time": (0.0, 1e4),
+        "mag_ref_tau": (0.01, 1e6), "rest_time": (1e-3, 1e4),
+        "rest_tau": (1e-3, 1e4), "rest_prefilter_tau": (1e-4, 10.0),
+        # noise densities and standard deviations: squared, so within 1e-9..1e6 (a large
+        # one turns a measurement off, as the tests do)
+        "gyro_noise": (1e-9, 1e6), "gyro_rate_noise": (0.0, 1e6), "bias_rw": (0.0, 1e6),
+        "bias_init": (1e-9, 1e6), "tilt_init": (1e-9, math.pi),
+        "heading_init": (1e-9, math.pi), "velocity_rw": (0.0, 1e6),
+        "velocity_prior": (1e-9, 1e6), "vel_aid_noise": (1e-9, 1e6),
+        "aid_density": (0.0, 1e6), "drag_sigma_init": (1e-9, 5.0),
+        "drag_noise": (1e-9, 1e6), "vertical_velocity_prior": (1e-9, 1e6),
+        "flight_accel_noise": (1e-3, 1e6), "mag_noise": (1e-9, 1e6),
+        "rest_noise": (1e-9, 1e6), "rest_gravity_noise": (1e-9, 1e6),
+        # thresholds and scales (inf: the test is off)
+        "velocity_scale": (1e-3, math.inf), "bias_max": (1e-3, math.inf),
+        "mag_norm_th": (1e-3, math.inf), "mag_dip_th": (1e-3, math.inf),
+        "rest_gyr_th": (1e-6, math.inf), "rest_acc_th": (1e-6, math.inf),
+        "rest_bias_th": (1e-6, math.inf), "rest_mag_th": (1e-6, math.inf),
+        # the vehicle
+        "gravity": (1.0, 30.0), "drag": (0.0, 100.0),
+        # switches
+        "aid_heading": (0.0, 1.0), "drag_heading": (0.0, 1.0),
+    }
+
     update_period: float = param(0.01, "Kalman update period [s]: samples in between are "
                                        "integrated, so the filter's cost and behaviour do "
                                        "not depend on the IMU rate")
@@ -1151,31 +1182,6 @@ class Eskf(Estimator):
                                _core.make_kernels(_step, takes_velocity=True))
 
     def _pack_params(self, p: EskfParams) -> np.ndarray:
-        positive = ("update_period", "gravity", "gyro_noise", "bias_init", "bias_max",
-                    "tilt_init", "heading_init", "velocity_prior", "velocity_reset_time",
-                    "vel_aid_noise", "drag_sigma_init", "drag_noise",
-                    "vertical_velocity_prior", "flight_accel_noise",
-                    "flight_evidence_time", "flight_switch_time", "mag_noise", "mag_norm_th",
-                    "mag_dip_th",
-                    "mag_ref_tau", "rest_gyr_th", "rest_acc_th", "rest_tau", "rest_noise",
-                    "rest_gravity_noise", "rest_prefilter_tau", "rest_bias_th",
-                    "rest_mag_th")
-        for f in positive:
-            value = getattr(p, f)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"parameter {f!r} must be a finite number > 0, got {value!r}")
-        if not p.velocity_scale > 0.0:  # inf: no weakening
-            raise ValueError(f"parameter 'velocity_scale' must be > 0, got {p.velocity_scale!r}")
-        if not p.mag_provisional_time >= 0.0:  # inf: no provisional reference
-            raise ValueError("parameter 'mag_provisional_time' must be >= 0, got "
-                             f"{p.mag_provisional_time!r}")
-        for f in ("mag_delay", "gyro_rate_noise", "velocity_scale_tau", "bias_rw",
-                  "velocity_rw", "drag", "mag_ref_time", "mag_new_time", "mag_reset_time",
-                  "rest_time"):
-            value = getattr(p, f)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"parameter {f!r} must be a finite number >= 0, got "
-                                 f"{value!r}")
         packed = np.array([float(getattr(p, f)) for f in _PARAM_FIELDS])
         # The filter lives at the gyro's time, imu_delay behind now; a magnetometer that
         # is not low-passed with the gyro (ArduPilot's compass) is that much newer than it.

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -56,6 +57,9 @@ _MIN_MAG_HORIZONTAL = math.sin(math.radians(2.0))
 
 @dataclass(frozen=True)
 class KalmanParams(CommonParams):
+    BOUNDS: ClassVar[dict[str, tuple[float, float]]] = {
+        "process_noise": (1e-12, 1e3), "measurement_noise": (1e-12, 1e3), "p0": (1e-12, 1e3)}
+
     process_noise: float = param(1e-4, "Q density [1/s]: variance added to each quaternion "
                                        "component per second of prediction (Q_k = Q·dt·I); "
                                        "≈ σ_gyro²/4 for a gyro noise density σ in rad/s/√Hz")
@@ -205,10 +209,6 @@ class QuaternionKalman(Estimator):
     _update_one, _run_batch = (staticmethod(k) for k in _core.make_kernels(_step))
 
     def _pack_params(self, p: KalmanParams) -> np.ndarray:
-        for key in ("process_noise", "measurement_noise", "p0"):
-            value = getattr(p, key)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"{key} must be a positive number, got {value!r}")
         return np.array([p.process_noise, p.measurement_noise, p.p0,
                          1.0 if p.exact else 0.0])
 

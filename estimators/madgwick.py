@@ -43,6 +43,8 @@ _BETA, _QUIRK = 0, 1
 
 @dataclass(frozen=True)
 class MadgwickParams(CommonParams):
+    BOUNDS: ClassVar[dict[str, tuple[float, float]]] = {"beta": (0.0, 10.0)}
+
     beta: float = param(0.1, "gradient step [rad/s]: the largest correction rate the "
                              "accelerometer/magnetometer can apply (Madgwick's default 0.1)")
     original_mag_quirk: bool = param(False, "True: the original C code's magnetometer "
@@ -126,13 +128,6 @@ class Madgwick(Estimator):
     name: ClassVar[str] = "madgwick"
     Params = MadgwickParams
     _update_one, _run_batch = (staticmethod(k) for k in _core.make_kernels(_step))
-
-    @classmethod
-    def make_params(cls, **params: float) -> MadgwickParams:
-        p = super().make_params(**params)
-        if not (math.isfinite(p.beta) and p.beta >= 0.0):
-            raise ValueError(f"beta must be a finite number >= 0, got {p.beta!r}")
-        return p
 
     def _pack_params(self, p: MadgwickParams) -> np.ndarray:
         return np.array([p.beta, 1.0 if p.original_mag_quirk else 0.0])

@@ -46,6 +46,9 @@ _KP, _KI, _BIAS_LIMIT, _MAG_HEADING, _EXACT = 0, 1, 2, 3, 4
 
 @dataclass(frozen=True)
 class MahonyParams(CommonParams):
+    BOUNDS: ClassVar[dict[str, tuple[float, float]]] = {
+        "kp": (0.0, 100.0), "ki": (0.0, 100.0), "bias_limit": (0.0, 35.0)}
+
     kp: float = param(0.5, "proportional gain [rad/s per unit cross-product error]; the "
                            "attitude error decays as exp(-kp·t) for small errors")
     ki: float = param(0.005, "integral gain [rad/s² per unit error]: the integral "
@@ -122,10 +125,6 @@ class Mahony(Estimator):
         if mode not in MAG_MODES:
             raise ValueError(f"mag_mode must be one of {MAG_MODES}, got {mode!r}")
         p = super().make_params(**params)
-        for key in ("kp", "ki", "bias_limit"):
-            value = getattr(p, key)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{key} must be a finite number >= 0, got {value!r}")
         return dataclasses.replace(p, mag_mode=mode)
 
     def _pack_params(self, p: MahonyParams) -> np.ndarray:

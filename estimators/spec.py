@@ -17,13 +17,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .base import Estimator
+from .base import DEGREE_UNITS, Estimator, doc_unit
 from .registry import estimator_class
 
 ParamValue = float | bool | str
 
-#: Suffix of the degree-valued alias -> the unit (first bracket of the doc) it replaces.
-DEGREE_SUFFIXES = {"_deg": "rad", "_dps": "rad/s"}
 _UNIT = re.compile(r"\[([^\]]*)\]")
 
 
@@ -32,10 +30,9 @@ def angle_params(est_cls: type[Estimator]) -> dict[str, str]:
     every parameter whose documented unit is ``[rad]`` or ``[rad/s]``."""
     out = {}
     for f in dataclasses.fields(est_cls.Params):
-        unit = _UNIT.search(f.metadata.get("doc", ""))
-        for suffix, rad_unit in DEGREE_SUFFIXES.items():
-            if unit is not None and unit.group(1).strip() == rad_unit:
-                out[f.name] = f.name + suffix
+        degrees = DEGREE_UNITS.get(doc_unit(f) or "")
+        if degrees is not None:
+            out[f.name] = f.name + degrees[0]
     return out
 
 
@@ -49,17 +46,25 @@ def user_param(est_cls: type[Estimator], name: str, value: ParamValue
 
 
 def user_param_docs(est_cls: type[Estimator]) -> dict[str, str]:
-    """Like ``param_docs`` with angles in degrees: ``declination_deg`` -> '0.0; ...[deg]'."""
+    """Like ``param_docs`` with angles in degrees, and the range a value must lie in:
+    ``beta_dps`` -> '5.72958 (0..572.958); ...[deg/s]...'."""
     aliases = angle_params(est_cls)
     out = {}
     for f in dataclasses.fields(est_cls.Params):
         doc = f.metadata.get("doc", "")
+        bounds = est_cls.Params.BOUNDS.get(f.name)
         if f.name in aliases:
-            unit = "deg" if aliases[f.name].endswith("_deg") else "deg/s"
+            unit = DEGREE_UNITS[doc_unit(f) or ""][1]
             doc = _UNIT.sub(f"[{unit}]", doc, count=1)
-            out[aliases[f.name]] = f"{math.degrees(f.default):.6g}; {doc}"
+            shown = f"{math.degrees(f.default):.6g}"
+            if bounds is not None:
+                shown += f" ({math.degrees(bounds[0]):.6g}..{math.degrees(bounds[1]):.6g})"
+            out[aliases[f.name]] = f"{shown}; {doc}"
         else:
-            out[f.name] = f"{f.default!r}; {doc}"
+            shown = repr(f.default)
+            if bounds is not None:
+                shown += f" ({bounds[0]:g}..{bounds[1]:g})"
+            out[f.name] = f"{shown}; {doc}"
     return out
 
 

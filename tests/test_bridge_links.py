@@ -202,3 +202,36 @@ async def test_refused_tcp_port_is_retried_and_told_once(caplog):
     assert len(warnings) == 1, warnings
     assert warnings[0].startswith(f"tcp:127.0.0.1:{port}: connection refused by "
                                   f"127.0.0.1:{port}; retrying")
+
+
+@async_test
+async def test_a_handler_that_fails_on_every_message_is_counted_not_a_traceback_flood(caplog):
+    """A message whose handling raises (a bug) is counted in the link's status; the
+    traceback is logged once per kind of failure, then a counted warning now and then —
+    not one traceback per sample with a summary that says nothing was dropped."""
+    from bridge.wire.udp import UdpLink
+
+    def broken(msg, link) -> None:
+        raise ZeroDivisionError("division by zero")
+
+    port = free_udp_port()
+    link = UdpLink(parse_url(f"udpin:127.0.0.1:{port}"), on_message=broken)
+    with caplog.at_level(logging.WARNING, logger="bridge.wire"):
+        await link.start()
+        try:
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
+                mav = mavlink.MAVLink(None, 1, 1)
+                for k in range(150):
+                    sender.sendto(imu_bytes(mav, euler_q(0, 0, 0), 1, 1000 + 2000 * k),
+                                  ("127.0.0.1", port))
+                    await asyncio.sleep(0)
+            counted = await wait_until(lambda: link.stats.handler_failures == 150)
+        finally:
+            await link.close()
+    assert counted, link.stats
+    tracebacks = [r for r in caplog.records if r.exc_info]
+    warnings = [r.getMessage() for r in caplog.records
+                if r.levelno == logging.WARNING and "failed" in r.getMessage()]
+    assert len(tracebacks) == 1
+    assert warnings == [f"udpin:127.0.0.1:{port}: handling RAW_IMU has failed {n} times "
+                        f"(ZeroDivisionError: division by zero)" for n in (10, 100)]

@@ -176,6 +176,7 @@ class StatusReporter:
              "idle_timeouts": ls.idle_timeouts, "write_stalls": ls.write_stalls,
              "peers": ls.peers,
              "peers_refused": ls.peers_refused, "peers_expired": ls.peers_expired,
+             "handler_failures": ls.handler_failures,
              "gate": self.admission.stats.to_dict(), "refused": dict(self.registry.refused),
              "vehicles": sorted(self.registry.vehicles)}
         if self.mqtt is not None:

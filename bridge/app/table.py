@@ -197,7 +197,8 @@ def summary(service: BridgeService) -> str:
     causes = {k: link[k] for k in ("bad_crc", "bad_frame", "truncated", "unsigned_rejected",
                                    "unsigned_accepted", "bad_signature", "replayed",
                                    "peers_refused", "peers_expired", "idle_timeouts",
-                                   "write_stalls", "reconnects") if link[k]}
+                                   "write_stalls", "reconnects", "handler_failures")
+              if link[k]}
     causes.update({f"gate_{k}": v for k, v in link["gate"].items() if v})
     causes.update({k: v for k, v in link["refused"].items() if v})
     lines.append(f" connection: {link['peers']} peers answered, refused/dropped "

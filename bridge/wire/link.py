@@ -37,6 +37,9 @@ BACKOFF_MAX_S = 5.0
 MessageHandler = Callable[[MAVLinkMessage, "Link"], None]
 #: Sees every frame read (True) or written (False), e.g. to record the session.
 Tap = Callable[[bytes, bool], None]
+#: Kinds of handler failure (message type, exception) whose traceback is logged; a
+#: sender that makes new kinds without end cannot flood the log with them.
+_FAILURE_KINDS_LOGGED = 20
 #: Sees each UDP datagram before parsing; False refuses it (the gate counts why).
 Gate = Callable[[bytes], bool]
 
@@ -119,6 +122,7 @@ class LinkStats:
     peers: int = 0  # UDP peers currently answered
     peers_refused: int = 0  # new peers not answered because the table was full
     peers_expired: int = 0  # peers dropped after peer_timeout_s of silence
+    handler_failures: int = 0  # messages whose handling raised (a bug: logged, counted)
 
 
 class Link:
@@ -134,6 +138,7 @@ class Link:
         self.codec = MavCodec(signing)
         self.stats = LinkStats()
         self.last_receive = 0.0  # time.monotonic() of the last valid message
+        self._failure_kinds: dict[tuple[str, str], int] = {}  # (message, exception) -> n
         self.last_addr: tuple | None = None  # sender of the message being handled
         #: How long the datagram being handled waited in the kernel before it was read
         #: (UDP, from its kernel receive time; 0 where there is none): what a busy event
@@ -203,8 +208,23 @@ class Link:
         for msg in msgs:
             try:
                 self.on_message(msg, self)
-            except Exception:  # one bad message must not kill the link
-                log.exception("%s: handling %s failed", self.name, msg.get_type())
+            except Exception as exc:  # one bad message must not kill the link
+                self._handler_failed(msg.get_type(), exc)
+
+    def _handler_failed(self, msg_type: str, exc: Exception) -> None:
+        """Count a message whose handling raised; the traceback once per kind of failure
+        and then a counted warning now and then, so that a failure on every sample is
+        a line a minute rather than a traceback per message."""
+        self.stats.handler_failures += 1
+        kind = (msg_type, type(exc).__name__)
+        seen = self._failure_kinds.get(kind, 0) + 1
+        self._failure_kinds[kind] = seen
+        if seen == 1 and len(self._failure_kinds) <= _FAILURE_KINDS_LOGGED:
+            log.error("%s: handling %s failed (a bug; later failures of this kind are "
+                      "counted)", self.name, msg_type, exc_info=exc)
+        elif seen in (10, 100) or seen % 10_000 == 0:
+            log.warning("%s: handling %s has failed %d times (%s: %s)", self.name, msg_type,
+                        seen, type(exc).__name__, exc)
 
     def _heard(self, addr: tuple) -> None:
         """A peer at ``addr`` spoke valid MAVLink (datagram links only)."""

@@ -24,11 +24,23 @@ from pathlib import Path
 
 import numpy as np
 
-#: (TOML table, offset key, matrix key, dataclass offset field, dataclass matrix field)
+#: Largest plausible offset per axis, per sensor (in the file's units). An offset is a
+#: sensor's zero error; one far beyond any datasheet's means a wrong unit (deg/s, g,
+#: microtesla) or a wrong file, and would make the estimate silently wrong:
+#: MPU6050 gyro zero-rate offset ±20 °/s plus its drift over temperature stays below
+#: 50 °/s; its zero-g offset (±80 mg plus drift) below 3 m/s^2 (0.3 g); a hard iron
+#: beyond 8 gauss (the HMC5883L's widest range, 12 Earth fields) would saturate the sensor.
+MAX_GYRO_OFFSET = math.radians(50.0)  # rad/s
+MAX_ACCEL_OFFSET = 3.0  # m/s^2
+MAX_MAG_OFFSET = 8.0  # gauss
+#: (TOML table, offset key, matrix key, dataclass offset field, dataclass matrix field,
+#: (largest offset, its unit, the same in words))
 _SECTIONS = (
-    ("gyro", "offset", "matrix", "gyro_offset", "gyro_matrix"),
-    ("accel", "offset", "matrix", "accel_offset", "accel_matrix"),
-    ("mag", "offset", "matrix", "mag_offset", "mag_matrix"),
+    ("gyro", "offset", "matrix", "gyro_offset", "gyro_matrix",
+     (MAX_GYRO_OFFSET, "rad/s", f"{math.degrees(MAX_GYRO_OFFSET):g} deg/s")),
+    ("accel", "offset", "matrix", "accel_offset", "accel_matrix",
+     (MAX_ACCEL_OFFSET, "m/s^2", f"{MAX_ACCEL_OFFSET / 9.80665:.2g} g")),
+    ("mag", "offset", "matrix", "mag_offset", "mag_matrix", (MAX_MAG_OFFSET, "gauss", "")),
 )
 #: Smallest allowed |det| relative to the product of row norms: below it the matrix
 #: squashes a direction to (almost) nothing, which no real correction does.
@@ -47,7 +59,27 @@ def _eye() -> np.ndarray:
     return np.eye(3)
 
 
-def _vector(value: object, name: str) -> np.ndarray:
+def _has_bool(value: object) -> bool:
+    """Whether a (nested) value holds a boolean: Python's bool is an int, so numpy
+    would silently read a TOML ``true`` as 1.0."""
+    if isinstance(value, bool | np.bool_):
+        return True
+    if isinstance(value, np.ndarray):
+        return value.dtype == bool or (value.dtype == object
+                                       and any(_has_bool(v) for v in value.flat))
+    if isinstance(value, list | tuple):
+        return any(_has_bool(v) for v in value)
+    return False
+
+
+def _refuse_bools(value: object, name: str) -> None:
+    if _has_bool(value):
+        raise ValueError(f"{name} must be numbers, not true/false, got {value!r}")
+
+
+def _vector(value: object, name: str, limit: tuple[float, str, str]) -> np.ndarray:
+    """3 finite numbers, none beyond ``limit`` (largest offset, unit, in words)."""
+    _refuse_bools(value, name)
     try:
         v = np.array(value, dtype=float)
     except (TypeError, ValueError):
@@ -56,10 +88,16 @@ def _vector(value: object, name: str) -> np.ndarray:
         raise ValueError(f"{name} must be 3 numbers, got shape {v.shape}")
     if not np.all(np.isfinite(v)):
         raise ValueError(f"{name} must be finite, got {v.tolist()}")
+    bound, unit, words = limit
+    if np.max(np.abs(v)) > bound:
+        said = f"{bound:.3g} {unit}" + (f" = {words}" if words else "")
+        raise ValueError(f"{name} is not a plausible offset (at most {said} per axis; "
+                         f"a wrong unit or file?): {v.tolist()}")
     return v
 
 
 def _matrix(value: object, name: str) -> np.ndarray:
+    _refuse_bools(value, name)
     try:
         m = np.array(value, dtype=float)
     except (TypeError, ValueError):
@@ -69,13 +107,17 @@ def _matrix(value: object, name: str) -> np.ndarray:
                          f"{m.shape}")
     if not np.all(np.isfinite(m)):
         raise ValueError(f"{name} must be finite, got {m.tolist()}")
-    rows = np.prod(np.linalg.norm(m, axis=1))
-    if rows == 0.0 or abs(np.linalg.det(m)) < MIN_RELATIVE_DET * rows:
-        raise ValueError(f"{name} is singular (it would flatten the measured vector): "
-                         f"{m.tolist()}")
-    scale = abs(np.linalg.det(m)) ** (1.0 / 3.0)
-    distortion = np.max(np.abs(m / scale - np.eye(3) * np.sign(np.linalg.det(m))))
-    if np.linalg.det(m) < 0.0 or distortion > MAX_RELATIVE_DISTORTION:
+    # Entries near the float limits (1e300) overflow the determinant to inf and tiny
+    # ones underflow the row norms to 0: both end in the refusals below, so quietly.
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        rows = np.prod(np.linalg.norm(m, axis=1))
+        det = np.linalg.det(m)
+        if rows == 0.0 or abs(det) < MIN_RELATIVE_DET * rows:
+            raise ValueError(f"{name} is singular (it would flatten the measured vector): "
+                             f"{m.tolist()}")
+        scale = abs(det) ** (1.0 / 3.0)
+        distortion = np.max(np.abs(m / scale - np.eye(3) * np.sign(det)))
+    if det < 0.0 or not distortion <= MAX_RELATIVE_DISTORTION:
         raise ValueError(f"{name} is not a plausible correction (a few percent from a "
                          f"multiple of the identity, no axis flip): {m.tolist()}")
     return m
@@ -100,8 +142,8 @@ class SensorCalibration:
     mag_matrix: np.ndarray = field(default_factory=_eye)
 
     def __post_init__(self) -> None:
-        for _, _, _, off, mat in _SECTIONS:
-            object.__setattr__(self, off, _vector(getattr(self, off), off))
+        for _, _, _, off, mat, limit in _SECTIONS:
+            object.__setattr__(self, off, _vector(getattr(self, off), off, limit))
             if mat is not None:
                 object.__setattr__(self, mat, _matrix(getattr(self, mat), mat))
         for name in ("gyro_offset", "gyro_matrix", "accel_offset", "accel_matrix",
@@ -146,7 +188,7 @@ class SensorCalibration:
             raise ValueError(f"unknown calibration table(s) {unknown}; valid: "
                              f"{sorted(known)}")
         values: dict[str, np.ndarray] = {}
-        for table, off_key, mat_key, off, mat in _SECTIONS:
+        for table, off_key, mat_key, off, mat, limit in _SECTIONS:
             section = data.get(table, {})
             if not isinstance(section, dict):
                 raise ValueError(f"[{table}] must be a table")
@@ -156,7 +198,7 @@ class SensorCalibration:
                 raise ValueError(f"unknown key(s) {extra} in [{table}]; valid: "
                                  f"{sorted(allowed)}")
             if off_key in section:
-                values[off] = _vector(section[off_key], f"{table}.{off_key}")
+                values[off] = _vector(section[off_key], f"{table}.{off_key}", limit)
             if mat_key and mat_key in section:
                 values[mat] = _matrix(section[mat_key], f"{table}.{mat_key}")
         return cls(**values)
@@ -166,9 +208,12 @@ class SensorCalibration:
         """Read a calibration TOML file; ValueError (with the file name) if it is bad."""
         p = Path(path)
         try:
-            text = p.read_text()
+            text = p.read_text(encoding="utf-8")  # TOML is UTF-8, whatever the locale
         except OSError as exc:
             raise ValueError(f"cannot read calibration file {p}: {exc}") from exc
+        except UnicodeDecodeError as exc:  # a ValueError that does not name the file
+            raise ValueError(f"{p}: not valid TOML (not UTF-8 text: byte "
+                             f"{exc.object[exc.start]:#04x} at offset {exc.start})") from exc
         try:
             return cls.from_dict(tomllib.loads(text))
         except tomllib.TOMLDecodeError as exc:
@@ -189,7 +234,7 @@ class SensorCalibration:
         lines.append("# attitude-bridge sensor calibration: corrected = matrix @ (raw - offset),")
         lines.append("# body FRD, SI (rad/s, m/s^2; magnetometer in gauss), after board scaling "
                      "and rotation.")
-        for table, off_key, mat_key, off, mat in _SECTIONS:
+        for table, off_key, mat_key, off, mat, _ in _SECTIONS:
             lines += ["", f"[{table}]", f"{off_key} = {vec(getattr(self, off))}"]
             if mat_key:
                 rows = ",\n    ".join(vec(r) for r in getattr(self, mat))

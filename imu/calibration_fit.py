@@ -58,6 +58,22 @@ MIN_MAG_SPREAD = 0.08
 MIN_MAG_DIRECTIONS = 18
 MAX_QUADRIC_CONDITION = 1e8
 
+# --- unusable samples ----------------------------------------------------------------
+#: Readings beyond these are no sensor's: the widest MEMS ranges are ±4000 °/s (70 rad/s)
+#: and ±200 g, magnetometers read up to ±50 gauss. Such a reading is a wrong unit or a
+#: corrupt value; it is unusable like a non-finite one (and its square would overflow).
+SAMPLE_LIMITS = {"gyro": (100.0, "rad/s"), "accelerometer": (2000.0, "m/s^2"),
+                 "magnetometer": (100.0, "gauss")}
+#: Runs of unusable gyro/accelerometer samples up to this long are interpolated from
+#: their neighbours. The fits assume evenly spaced samples (a turn is integrated at
+#: 1/rate per sample), so dropping a sample would shorten the turn, while over a few
+#: milliseconds a rate is all but linear. Longer runs stay NaN and end still stretches
+#: and turns, as a gap between pooled logs does.
+MAX_FILL_S = 0.02
+#: At rest the accelerometer reads g; with MEMS offsets and scale errors of a few
+#: percent a static pose is within these factors of it, or the data is not in m/s^2.
+POSE_NORM_RANGE = (0.5, 1.5)
+
 
 @dataclass(frozen=True)
 class FitReport:
@@ -109,6 +125,73 @@ class FitReport:
                        f"{self.mag_norm_rel_std_before:.4f} -> "
                        f"{self.mag_norm_rel_std_after:.4f}")
         return out
+
+
+@dataclass(frozen=True)
+class Repair:
+    """What :func:`repair_samples` found in and did to one sensor's samples."""
+
+    sensor: str
+    non_finite: int = 0  # samples with a NaN or infinite component
+    beyond: int = 0  # samples beyond SAMPLE_LIMITS
+    filled: int = 0  # of those, interpolated from their neighbours
+
+    @property
+    def unusable(self) -> int:
+        return self.non_finite + self.beyond
+
+    @property
+    def left_out(self) -> int:
+        return self.unusable - self.filled
+
+    def note(self) -> str:
+        """One line for the user ('' when every sample was usable)."""
+        if not self.unusable:
+            return ""
+        limit, unit = SAMPLE_LIMITS[self.sensor]
+        kinds = [f"{self.non_finite} non-finite"] if self.non_finite else []
+        kinds += [f"{self.beyond} beyond ±{limit:g} {unit}"] if self.beyond else []
+        done = [f"{self.filled} interpolated from their neighbours"] if self.filled else []
+        done += [f"{self.left_out} left out"] if self.left_out else []
+        return (f"{self.sensor}: {self.unusable} samples unusable ({', '.join(kinds)}); "
+                f"{', '.join(done)}")
+
+
+def _fillable(bad: np.ndarray, max_run: int) -> np.ndarray:
+    """The bad samples in runs of at most ``max_run`` with a good sample on each side."""
+    fill = np.zeros_like(bad)
+    for s, e in _runs(bad):
+        if e - s <= max_run and s > 0 and e < len(bad):
+            fill[s:e] = True
+    return fill
+
+
+def repair_samples(x: np.ndarray, sensor: str, rate_hz: float, fill: bool = True
+                   ) -> tuple[np.ndarray, Repair]:
+    """(samples with unusable ones set to NaN — short runs of them interpolated when
+    ``fill`` — and what was done). ``sensor`` is a key of SAMPLE_LIMITS.
+
+    ValueError when no sample at all is usable because of the limit: a wrong unit or
+    column, which no fit should be left to discover.
+    """
+    v = np.array(x, dtype=float)
+    limit, unit = SAMPLE_LIMITS[sensor]
+    non_finite = ~np.all(np.isfinite(v), axis=1)
+    with np.errstate(invalid="ignore"):
+        beyond = ~non_finite & np.any(np.abs(v) > limit, axis=1)
+    bad = non_finite | beyond
+    if beyond.any() and bad.all():
+        raise ValueError(f"{sensor}: every sample is unusable ({beyond.sum()} beyond "
+                         f"±{limit:g} {unit}, up to {np.nanmax(np.abs(v[beyond])):.3g}): "
+                         f"a wrong unit or column")
+    v[bad] = np.nan
+    filled = np.zeros_like(bad)
+    if fill and bad.any() and not bad.all():
+        filled = _fillable(bad, max(1, round(MAX_FILL_S * rate_hz)))
+        good = np.flatnonzero(~bad)
+        for k in range(3):
+            v[filled, k] = np.interp(np.flatnonzero(filled), good, v[good, k])
+    return v, Repair(sensor, int(non_finite.sum()), int(beyond.sum()), int(filled.sum()))
 
 
 # --- still stretches and poses ----------------------------------------------------
@@ -238,6 +321,22 @@ def fit_norm_ellipsoid(points: np.ndarray, radius: float, symmetric: bool,
     return b, m, cond
 
 
+def check_pose_norms(poses: np.ndarray) -> None:
+    """ValueError unless every static pose reads about g (POSE_NORM_RANGE): a pose at
+    rest reading far from it means the wrong unit (g for m/s^2), the wrong board profile
+    or a dead or clipped axis, and the fits would be fitted to nonsense."""
+    if not len(poses):
+        return
+    norms = np.linalg.norm(poses, axis=1)
+    lo, hi = (f * G for f in POSE_NORM_RANGE)
+    off = int(np.sum((norms < lo) | (norms > hi)))
+    if off:
+        raise ValueError(f"accelerometer: {off} of {len(poses)} static poses read |a| "
+                         f"outside {lo:.1f}..{hi:.1f} m/s^2 (median "
+                         f"{np.median(norms):.3f} m/s^2), but at rest it is g = {G:.2f}: "
+                         "is the log in m/s^2 (not g), and the board profile right?")
+
+
 def fit_accelerometer(gyr: np.ndarray, acc: np.ndarray, rate_hz: float
                       ) -> tuple[np.ndarray, np.ndarray, dict]:
     """(offset, matrix, report fields) from the static poses in the samples.
@@ -247,6 +346,7 @@ def fit_accelerometer(gyr: np.ndarray, acc: np.ndarray, rate_hz: float
     with ``accel_note`` saying why.
     """
     poses, _, _ = static_poses(gyr, acc, rate_hz)
+    check_pose_norms(poses)
     count = distinct_directions(poses, POSE_SEPARATION_DEG) if len(poses) else 0
     if count < MIN_POSES:
         raise ValueError(f"accelerometer: found {count} distinct static pose(s) (at least "

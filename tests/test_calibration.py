@@ -446,3 +446,50 @@ def test_calibrate_command_fits_a_csv_log_and_refuses_a_poor_one(tmp_path, synth
     bad_out = tmp_path / "bad.toml"
     assert cli_main(["calibrate", str(short), "-o", str(bad_out)]) == 2
     assert "distinct static pose" in capsys.readouterr().err and not bad_out.exists()
+
+
+# --- implausible files (hostile-input sweep) --------------------------------------------
+
+@pytest.mark.parametrize("text, message", [
+    ("[gyro]\noffset = [10, 10, 10]\n", r"gyro\.offset is not a plausible offset .*rad/s"),
+    ("[accel]\noffset = [1e308, 1e308, 1e308]\n", r"accel\.offset is not a plausible offset"),
+    ("[accel]\noffset = [100, 0, 0]\n", r"accel\.offset is not a plausible offset .*m/s\^2"),
+    ("[mag]\noffset = [1e6, 0, 0]\n", r"mag\.offset is not a plausible offset .*gauss"),
+    ("[accel]\noffset = [true, false, true]\n", r"accel\.offset must be numbers, not true/false"),
+    ("[gyro]\nmatrix = [[true, 0, 0], [0, 1, 0], [0, 0, 1]]\n",
+     r"gyro\.matrix must be numbers, not true/false"),
+])
+def test_implausible_offsets_and_booleans_are_refused(tmp_path, text, message):
+    """Offsets far beyond any MEMS sensor's (a wrong unit or file) made the estimate
+    silently wrong; TOML booleans passed as the numbers 1 and 0."""
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=message) as info:
+        SensorCalibration.load(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_offsets_are_bounded_when_built_in_code_too():
+    with pytest.raises(ValueError, match="gyro_offset is not a plausible offset"):
+        SensorCalibration(gyro_offset=np.array([1.0, 0.0, 0.0]))  # 57 °/s
+    with pytest.raises(ValueError, match="must be numbers, not true/false"):
+        SensorCalibration(accel_offset=np.array([True, False, False]))
+    # Realistic worst cases pass: MPU6050 ±20 °/s, ±80 mg; hard iron of a few gauss.
+    SensorCalibration(gyro_offset=np.radians([20.0, -20.0, 20.0]),
+                      accel_offset=np.array([0.8, -0.8, 1.2]), mag_offset=np.array([3, 0, 0]))
+
+
+@pytest.mark.filterwarnings("error")  # a numpy RuntimeWarning must not reach the user
+def test_huge_matrix_is_refused_without_a_numpy_warning(tmp_path):
+    path = tmp_path / "huge.toml"
+    path.write_text("[accel]\nmatrix = [[1e300, 0, 0], [0, 1e300, 0], [0, 0, 1e300]]\n")
+    with pytest.raises(ValueError, match=r"accel\.matrix is not a plausible correction"):
+        SensorCalibration.load(path)
+
+
+def test_a_file_that_is_not_utf8_is_named(tmp_path):
+    path = tmp_path / "binary.toml"
+    path.write_bytes(b"\xff\xfe bad")
+    with pytest.raises(ValueError, match=r"not valid TOML \(not UTF-8 text") as info:
+        SensorCalibration.load(path)
+    assert str(info.value).startswith(f"{path}: ")

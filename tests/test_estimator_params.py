@@ -13,8 +13,8 @@ import pytest
 
 import estimators
 from estimators import quat as Q
-from estimators.metrics import attitude_errors
 from estimators.base import CommonParams
+from estimators.metrics import attitude_errors
 from estimators.spec import EstimatorSpec
 
 NAMES = ("eskf", "euler", "dcm", "quaternion", "mahony", "madgwick", "kalman")

@@ -52,14 +52,22 @@ def check_address(address: str) -> None:
 
 
 async def _identity(address: str, timeout: float) -> dict:
+    """The scheduler's answer to one identity request (TimeoutError if none comes): Dask's
+    own connect timeout covers the TCP connection, retried until ``timeout``, but not
+    its handshake, so a listener that accepts and stays silent would hold it for ever.
+    The whole exchange gets a second more than the connection, so that a refused or
+    unreachable address still fails as Dask says it."""
     from distributed.comm import connect
 
-    comm = await connect(address, timeout=timeout)
-    try:
-        await comm.write({"op": "identity", "reply": True})
-        return await asyncio.wait_for(comm.read(), timeout)
-    finally:
-        comm.abort()
+    async def ask() -> dict:
+        comm = await connect(address, timeout=timeout)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    return await asyncio.wait_for(ask(), timeout + 1.0)
 
 
 @contextmanager
@@ -85,7 +93,10 @@ def connect(address: str, timeout: float | None = None):
     with _quiet_dask():
         try:
             reply = asyncio.run(_identity(address, timeout))
-        except OSError as exc:  # refused, unreachable, timed out, unknown host
+        except TimeoutError:  # nothing connected, or a listener that does not answer
+            raise ReplayInputError(f"{where}: no Dask scheduler answered within "
+                                   f"{timeout + 1.0:g} s") from None
+        except OSError as exc:  # refused, unreachable, unknown host
             raise ReplayInputError(f"{where}: cannot connect within {timeout:g} s "
                                    f"({' '.join(str(exc).split()) or type(exc).__name__})"
                                    ) from None

@@ -216,6 +216,15 @@ def test_bad_scheduler_addresses_are_one_line_errors(corpus, monkeypatch):
     code, _, err = cli(["replay", str(corpus), "--scheduler", f"tcp://127.0.0.1:{port}"])
     assert code == 2 and err.count("\n") == 1 and "cannot connect within 1 s" in err
     assert time.perf_counter() - began < 5.0
+    with socket.socket() as silent:  # accepts and never answers (it used to hang)
+        silent.bind(("127.0.0.1", 0))
+        silent.listen()
+        began = time.perf_counter()
+        code, _, err = cli(["replay", str(corpus), "--scheduler",
+                            f"tcp://127.0.0.1:{silent.getsockname()[1]}"])
+    assert code == 2 and err.count("\n") == 1, err
+    assert "no Dask scheduler answered within 2 s" in err
+    assert time.perf_counter() - began < 5.0
     monkeypatch.setattr(cluster.importlib.util, "find_spec", lambda name: None)
     code, _, err = cli(["tune", str(corpus), "-e", "mahony", "-p", "kp=1",
                         "--scheduler", "tcp://127.0.0.1:8786"])

@@ -169,7 +169,7 @@ def test_estimators_listing_shows_degrees(capsys):
     assert main(["estimators", "eskf"]) == 0
     out = capsys.readouterr().out
     assert "declination_deg = 0; magnetic declination [deg]" in out
-    assert "bias_max_dps = 20; " in out and "[deg/s]" in out
+    assert "bias_max_dps = 20 (0.0572958..inf); " in out and "[deg/s]" in out
     assert "\n    declination = " not in out
 
 

@@ -7,6 +7,7 @@ import importlib.util
 import json
 import os
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 from bridge.app.config_checks import check_output_file as check_writable_file
@@ -147,6 +148,30 @@ def check_output_file(path: Path | None, option: str) -> None:
         check_writable_file(path, option)
 
 
+def _same_file_key(path: Path) -> str:
+    return os.path.normcase(os.path.realpath(path))
+
+
+def check_outputs(outputs: Sequence[tuple[Path | None, str]], logs: Sequence[Path]) -> None:
+    """Refuse, before any work, an output that cannot be written, that two options
+    share (the second would overwrite the first), or that is one of the logs read (it
+    would be overwritten with the results)."""
+    read = {_same_file_key(p): p for p in logs if p.is_file()}
+    taken: dict[str, str] = {}
+    for path, option in outputs:
+        if path is None:
+            continue
+        check_output_file(path, option)
+        key = _same_file_key(path)
+        if key in taken:
+            raise ReplayInputError(f"{option} {path}: also given to {taken[key]}; each "
+                                   f"output needs a file of its own")
+        if key in read:
+            raise ReplayInputError(f"{option} {path}: is one of the logs read "
+                                   f"({read[key]}); it would be overwritten")
+        taken[key] = option
+
+
 def check_output_dir(path: Path | None, option: str) -> None:
     """A folder to write into: it exists, or its parent does (it is created then)."""
     if path is None:
@@ -176,9 +201,8 @@ def _replay(args: argparse.Namespace) -> int:
         return replay_corpus(args)
     args.file = args.paths[0]
     try:
-        for path, option in ((args.report, "--report"), (args.json, "--json"),
-                             (args.csv, "--csv")):
-            check_output_file(path, option)
+        check_outputs(((args.report, "--report"), (args.json, "--json"),
+                       (args.csv, "--csv")), [Path(args.file)])
         check_output_dir(args.png, "--png")
         if args.report:
             require_module("bokeh", "--report")
@@ -229,8 +253,8 @@ def _tune(args: argparse.Namespace) -> int:
     from .tune_tasks import TuneInputs, no_log_left, sweep_on_cluster, tunable, unusable
 
     try:
-        check_output_file(args.out, "--out")
-        check_output_file(args.heatmap, "--heatmap")
+        check_outputs(((args.out, "--out"), (args.heatmap, "--heatmap")),
+                      expand(args.files))
         if args.heatmap:
             require_module("matplotlib", "--heatmap")
         if args.group_by != "log" and not args.cross_validate:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from estimators.spec import EstimatorSpec
 
-from .cli import INTERRUPTED, check_output_file, require_module
+from .cli import INTERRUPTED, check_outputs, require_module
 from .corpus_summary import CorpusSummary, summarise
 from .corpus_task import FAILED, ReplayOptions, absolute, crashed, replay_log
 from .dataset import ReplayInputError
@@ -47,9 +47,8 @@ def check_options(args: argparse.Namespace) -> None:
         if getattr(args, name, None):
             raise ReplayInputError(f"{why}: give one log, not several (for several: "
                                    f"--json, --csv or --report)")
-    for path, option in ((args.report, "--report"), (args.json, "--json"),
-                         (args.csv, "--csv")):
-        check_output_file(path, option)
+    check_outputs(((args.report, "--report"), (args.json, "--json"), (args.csv, "--csv")),
+                  expand(args.paths))
     if args.report:
         require_module("bokeh", "--report")
     if args.scheduler:

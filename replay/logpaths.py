@@ -65,8 +65,11 @@ def expand(paths: Iterable[str | Path]) -> list[Path]:
                 raise ReplayInputError(f"{p}: no logs in this folder (looked for "
                                        f"{', '.join(sorted(LOG_SUFFIXES))}, recursively)")
             out += found
-        elif p.exists() or not is_pattern(str(arg)):
+        elif p.exists():
             out.append(p)
+        elif not is_pattern(str(arg)):
+            # as a pattern that matches nothing: a typo must not shrink the corpus
+            raise ReplayInputError(f"{arg}: no such file or folder")
         else:
             matches = sorted(glob.glob(str(arg), recursive=True))
             if not matches:

@@ -520,3 +520,54 @@ def test_ctrl_c_in_tune_keeps_the_partial_sweep(tmp_path):
     rows = out.read_text().splitlines()
     assert rows[0].startswith("kp,mean_total_deg") and 5 <= len(rows) - 1 < points
     assert "best mahony" in stdout
+
+
+def _small_csv(tmp_path: Path, name: str = "s.csv", seed: int = 5) -> Path:
+    rec = generate(SyntheticConfig(duration_s=2.0, seed=seed))
+    path = tmp_path / name
+    csv_format.write(path, rec.t, rec.gyr, rec.acc, rec.mag, rec.reference.q)
+    return path
+
+
+@pytest.mark.parametrize("option", ["--json", "--csv", "--report"])
+def test_an_output_that_is_the_log_read_is_refused(tmp_path, capsys, option):
+    """`replay log.csv --json log.csv` replaced the log with its results, exit 0."""
+    log = _small_csv(tmp_path)
+    before = log.read_bytes()
+    assert main(["replay", str(log), "-e", "mahony", option, str(log)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is one of the logs read" in err[0] and option in err[0]
+    assert log.read_bytes() == before
+
+
+def test_two_outputs_to_one_file_are_refused(tmp_path, capsys):
+    log = _small_csv(tmp_path)
+    same = tmp_path / "same.out"
+    assert main(["replay", str(log), "-e", "mahony", "--json", str(same),
+                 "--csv", str(same)]) == 2
+    err = capsys.readouterr().err
+    assert "--csv" in err and "also given to --json" in err and not same.exists()
+
+
+def test_tune_output_that_is_one_of_the_logs_is_refused(tmp_path, capsys):
+    a, b = _small_csv(tmp_path, "a.csv", 5), _small_csv(tmp_path, "b.csv", 6)
+    before = a.read_bytes()
+    assert main(["tune", str(a), str(b), "-e", "mahony", "-p", "kp=1,2", "--out", str(a),
+                 "-q"]) == 2
+    assert "is one of the logs read" in capsys.readouterr().err
+    assert a.read_bytes() == before
+
+
+def test_a_corpus_output_inside_the_corpus_and_a_missing_log_are_refused(tmp_path, capsys):
+    """In a corpus, an output that is one of its logs is refused like a single log's; a
+    named log that does not exist is refused like a pattern that matches nothing (it
+    used to be scored as a failed log, exit 0, while the pattern was an error)."""
+    a, b = _small_csv(tmp_path, "a.csv", 5), _small_csv(tmp_path, "b.csv", 6)
+    before = b.read_bytes()
+    assert main(["replay", str(tmp_path), "-e", "mahony", "-q", "--json", str(b)]) == 2
+    assert "is one of the logs read" in capsys.readouterr().err
+    assert b.read_bytes() == before
+    missing = tmp_path / "nonexistent.csv"
+    assert main(["replay", str(a), str(missing), "-e", "mahony", "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"attitude-bridge replay: error: {missing}: no such file or folder"]

@@ -35,11 +35,22 @@ class Declination:
         return f"{self.deg:+.2f}° ({self.source})"
 
 
+def check_against_reference(rec: Recording, deg: float, what: str) -> None:
+    """ValueError for a declination asked of estimates scored against a reference that
+    is relative to magnetic north: it would turn them away from it by just as much, a
+    heading error of the user's making that the scores would blame on the filters."""
+    if deg != 0.0 and rec.reference is not None and rec.reference.north == "magnetic":
+        raise ValueError(f"{what}: the reference ({rec.reference.source}) is relative to "
+                         f"magnetic north, so a declination would turn the estimates away "
+                         f"from it by as much; leave it out")
+
+
 def resolve(rec: Recording, given_deg: float | None = None) -> Declination:
     """The declination for ``rec``; ``given_deg`` (the command line) wins."""
     if given_deg is not None:
         if not math.isfinite(given_deg) or abs(given_deg) > 180.0:
             raise ValueError(f"--declination-deg must be within ±180, got {given_deg}")
+        check_against_reference(rec, given_deg, f"--declination-deg {given_deg:g}")
         return Declination(float(given_deg), "--declination-deg")
     if rec.reference is not None and rec.reference.north == "magnetic":
         return Declination(0.0, f"none: the reference ({rec.reference.source}) is relative "

@@ -21,7 +21,7 @@ from imu.vehicles import type_name
 
 from .align import DEFAULT_MAX_GAP_S, measure_lag, reference_at
 from .dataset import Recording, ReplayInputError
-from .declination import Declination, resolve
+from .declination import Declination, check_against_reference, resolve
 from .flight import PHASES, FlightTrack, track
 
 #: Gyro-only integrators: left out of the default comparison (they only drift), still
@@ -463,6 +463,9 @@ def evaluate(rec: Recording, specs: list[EstimatorSpec | str] | None = None,
     for spec in chosen:  # unknown names and parameters fail before any work
         estimators.estimator_class(spec.name).make_params(**spec.params)
     prep = prepare(rec, method, declination_deg=declination_deg, aid=aid)
+    for spec in chosen:  # -e NAME:declination_deg=... as --declination-deg
+        check_against_reference(rec, float(spec.params.get("declination", 0.0)),
+                                spec.label)
     if rec.rate_hz < min_rate_hz:
         return Evaluation(prep, {}, {}, f"IMU at {rec.rate_hz:.1f} Hz is too slow to estimate "
                                         f"attitude from (needs >= {min_rate_hz:g} Hz)")

@@ -571,3 +571,14 @@ def test_a_corpus_output_inside_the_corpus_and_a_missing_log_are_refused(tmp_pat
     assert main(["replay", str(a), str(missing), "-e", "mahony", "-q"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"attitude-bridge replay: error: {missing}: no such file or folder"]
+
+
+@pytest.mark.parametrize("args", [["-e", "mahony", "--declination-deg", "30"],
+                                  ["-e", "mahony:declination_deg=30"]])
+def test_a_declination_against_a_magnetic_reference_is_refused(data_dir, capsys, args):
+    """BROAD's reference is relative to magnetic north: a declination turned only the
+    estimates, and the replay reported a 30° heading error of the user's making."""
+    path = data_dir / "broad" / "01_undisturbed_slow_rotation_A.npz"
+    assert main(["replay", str(path), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "relative to magnetic north" in err[0]

@@ -246,7 +246,7 @@ def _replay(args: argparse.Namespace) -> int:
 def _tune(args: argparse.Namespace) -> int:
     from estimators.spec import EstimatorSpec
 
-    from .crossval import check_groups, cross_validate
+    from .crossval import check_groups, cross_validate, identical_logs
     from .evaluate import prepare
     from .logpaths import expand
     from .tune import parse_param, sweep
@@ -271,6 +271,9 @@ def _tune(args: argparse.Namespace) -> int:
         files = expand(args.files)
         if args.cross_validate:
             check_groups([str(f) for f in files], args.group_by)
+            for same in identical_logs([str(f) for f in files]):
+                print(f"attitude-bridge tune: {', '.join(same)} have the same content: "
+                      f"held out together", file=sys.stderr)
         if args.scheduler:
             inputs = TuneInputs(args.board, args.imu, args.reference, args.declination_deg,
                                 args.aid or "auto")

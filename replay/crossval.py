@@ -13,6 +13,7 @@ design were chosen by someone who may have looked at the same logs.
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -110,9 +111,43 @@ def choose(matrix: np.ndarray, columns: np.ndarray) -> int | None:
     return int(np.nanargmin(mean))
 
 
+def _content_digest(path: str) -> str | None:
+    try:
+        with open(path, "rb") as f:
+            return hashlib.file_digest(f, "sha256").hexdigest()
+    except OSError:
+        return None
+
+
+def identical_logs(files: list[str]) -> list[tuple[str, ...]]:
+    """Sets of files with the same content (a log copied under another name)."""
+    by_digest: dict[str, list[str]] = {}
+    for f in files:
+        digest = _content_digest(f)
+        if digest is not None:
+            by_digest.setdefault(digest, []).append(f)
+    return [tuple(same) for same in by_digest.values() if len(same) > 1]
+
+
 def check_groups(files: list[str], group_by: str) -> list[str]:
-    """Each file's group; at least two groups, or there is nothing to hold out."""
+    """Each file's group; at least two groups, or there is nothing to hold out.
+
+    Files with the same content share a group (with their groups merged): a copy of
+    the held-out log left among the others would make "held out" in-sample."""
     groups = [group_of(f, group_by) for f in files]
+    parent = {g: g for g in groups}
+
+    def root(g: str) -> str:
+        while parent[g] != g:
+            g = parent[g]
+        return g
+
+    index = {f: k for k, f in enumerate(files)}
+    for same in identical_logs(files):
+        first = root(groups[index[same[0]]])
+        for f in same[1:]:
+            parent[root(groups[index[f]])] = first
+    groups = [root(g) for g in groups]
     if len(set(groups)) < 2:
         raise ValueError(f"--cross-validate needs at least two {group_by}s to hold out one "
                          f"at a time (got {len(set(groups))})")

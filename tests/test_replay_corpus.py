@@ -26,7 +26,7 @@ import pytest
 
 from bridge.app.cli import main
 from replay import cluster
-from replay.crossval import cross_validate
+from replay.crossval import check_groups, cross_validate
 from replay.dataset import ReplayInputError
 from replay.logpaths import expand, is_corpus
 from replay.parallel import run
@@ -449,3 +449,21 @@ def test_dask_tune_cross_validated_equals_local(tune_logs_with_bad, dask_cluster
         docs.append(doc)
     assert docs[0] == docs[1] and docs[0]["cross_validation"]["logs"]
     assert len(docs[0]["left_out"]) == 2  # the unusable logs, left out alike
+
+
+def test_copies_of_one_log_are_held_out_together(tmp_path, corpus):
+    """A log copied under another name left its twin among the others when held out, so
+    the cross-validated score was the in-sample one (a new-user sweep)."""
+    a, b = corpus / "bench" / "a.csv", corpus / "bench" / "b.csv"
+    copy = tmp_path / "other" / "copy_of_a.csv"
+    copy.parent.mkdir()
+    shutil.copy(a, copy)
+    files = [str(a), str(b), str(copy)]
+    groups = check_groups(files, "log")
+    assert groups[0] == groups[2] != groups[1]
+    with pytest.raises(ValueError, match="at least two folders"):  # other/ joins bench/
+        check_groups(files, "folder")
+    code, _, err = cli(["tune", *files, "-e", "mahony", "-p", "kp=0.1,1", "--cross-validate",
+                        "-q"])
+    assert code == 0
+    assert f"{a}, {copy} have the same content: held out together" in err

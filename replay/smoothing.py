@@ -31,10 +31,15 @@ def smoothed_run(prep: Prepared, spec: EstimatorSpec, init: str = "sensors") -> 
     rec = prep.recording
     sl, q0, params = run_inputs(prep, spec, init)
     began = time.perf_counter()
-    res = estimators.smooth(spec.name, rec.gyr[sl], rec.acc[sl],
-                            None if rec.mag is None else rec.mag[sl], rate_hz=rec.rate_hz,
-                            world=rec.world, q0=q0, dt=rec.dt[sl],
-                            **aiding_kwargs(prep, sl), **flight_kwargs(prep, sl), **params)
+    try:
+        res = estimators.smooth(spec.name, rec.gyr[sl], rec.acc[sl],
+                                None if rec.mag is None else rec.mag[sl],
+                                rate_hz=rec.rate_hz, world=rec.world, q0=q0, dt=rec.dt[sl],
+                                **aiding_kwargs(prep, sl), **flight_kwargs(prep, sl),
+                                **params)
+    except np.linalg.LinAlgError as exc:  # a forward pass whose covariance blew up
+        raise ValueError(f"--smooth ({spec.label}): the forward filter's covariance is not "
+                         f"usable for smoothing ({exc})") from None
     seconds = time.perf_counter() - began
     out = estimators.BatchResult(q=res.q, bias=res.bias, flags=res.online.flags)
     return placed(prep, spec, sl, out, res.counters, seconds)

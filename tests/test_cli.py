@@ -5,6 +5,7 @@ and the environment; degrees at the user surface."""
 from __future__ import annotations
 
 import math
+import os
 import socket
 import subprocess
 import sys
@@ -34,6 +35,8 @@ def bad_inputs(tmp: Path, busy: int) -> list[tuple[list[str], str]]:
     bad_toml.write_text("estimator = [\n")
     typo = tmp / "typo.toml"
     typo.write_text('conect = "udpin:0.0.0.0:14550"\n')
+    huge_window = tmp / "window.toml"  # was a MemoryError per sample (18 TiB), exit 0
+    huge_window.write_text("window-s = 1e9\n")
     log = tmp / "log.csv"
     log.write_text("not,a,log\n")
     return [
@@ -44,15 +47,20 @@ def bad_inputs(tmp: Path, busy: int) -> list[tuple[list[str], str]]:
         (["run", "--config", str(tmp / "missing.toml")], "does not exist"),
         (["run", "--config", str(bad_toml)], f"{bad_toml} is not valid TOML"),
         (["run", "--config", str(typo)], "unknown setting 'conect'"),
+        (["run", "--config", str(huge_window)], "'window_s' must be within 0.1..600"),
         (["run", "--rotation", "YAW_91"], "unknown rotation 'YAW_91'"),
         (["run", "--estimator", "mahony:kp=fast"], "kp"),
         (["run", "--estimator", "eskf:declination_deg=400"], "declination"),
         (["run", "--imu-rate", "-1"], "imu_rate"),
         (["run", "--mqtt", "http://broker"], "MQTT URL"),
         (["run", "--record", str(tmp / "no" / "session.tlog")], "does not exist"),
-        (["demo", "--duration", "0"], "duration must be positive"),
+        (["demo", "--duration", "0"], "duration must be more than 0"),
+        (["demo", "--duration", "1e8"], "at most 3.1536e+07 s"),  # was 64 MB/s, no start
+        (["run", "--imu-rate", "1e-300"], "'imu_rate' must be within 1..10000"),  # traceback
+        (["run", "--accel-range", "0.5"], "'accel_range_g' must be within 2.."),  # all refused
+        (["run", "--gyro-range", "1e-300"], "'gyro_range_dps' must be within 100.."),
         (["demo", "--profile", "wobble"], "unknown profile 'wobble'"),
-        (["demo", "--imu-rate", "1e9"], "at most 10000 Hz"),
+        (["demo", "--imu-rate", "1e9"], "'imu_rate' must be within 1..10000"),
         (["run", "--connect", ""], "bad connection URL ''"),
         # a folder that exists but takes no file (access() says writable): before any work
         (["hil", "--target", "udp:127.0.0.1:9", "--duration", "5", "--stats-json",
@@ -278,3 +286,26 @@ def test_readme_commands_are_valid(tmp_path, monkeypatch):
         args = build_parser().parse_args(shlex.split(command)[1:])
         if args.command in ("run", "demo"):
             config_from_args(args, demo=args.command == "demo", environ={}).validate()
+
+
+@pytest.mark.parametrize("time_unix, why", [
+    ("1e308", "in the future"), ("NaN", "is not a time"), ('"now"', "unreadable")])
+def test_health_refuses_a_status_file_from_the_future_or_without_a_time(tmp_path, capsys,
+                                                                        time_unix, why):
+    """An hour-ahead file said 'healthy: updated -3517.0 s ago', a NaN one 'nan s ago'."""
+    status = tmp_path / "status.json"
+    status.write_text('{"time_unix": %s, "vehicles": {}}' % time_unix)
+    assert main(["health", "--status-file", str(status)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("unhealthy: ") and why in err
+
+
+def test_a_status_file_that_is_not_a_regular_file_is_refused(tmp_path, capsys):
+    """The status file is replaced by a rename: `--status-file /dev/null` made /dev/null a
+    regular file (as root). A FIFO stands in for the device here."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    assert main(["run", "--duration", "1", "--status-file", str(fifo)]) == 2
+    err = capsys.readouterr().err
+    assert "not a regular file" in err and err.count("\n") == 1
+    assert fifo.is_fifo()

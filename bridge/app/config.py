@@ -204,10 +204,9 @@ class BridgeConfig:
             check_emulator(self)
         if not 1 <= self.component_id <= 255 or not 1 <= self.system_id <= 255:
             raise ValueError("component_id and system_id must be in 1..255")
-        if self.mqtt:
-            from ..publish.mqtt import MqttSettings
+        from ..publish.mqtt import check_mqtt_settings
 
-            MqttSettings.from_url(self.mqtt)
+        check_mqtt_settings(self)
         if self.web is not None:
             from ..publish.web import parse_web
 
@@ -215,6 +214,10 @@ class BridgeConfig:
         for option, path in (("--record", self.record), ("--status-file", self.status_file)):
             if path is not None:
                 check_output_file(path, option)
+        if self.status_file is not None:
+            from .health import check_status_path
+
+            check_status_path(self.status_file)
 
     @property
     def truth(self) -> tuple[int, int] | None:

@@ -40,6 +40,33 @@ def check_types(cfg: Any) -> None:
 #: The fastest IMU stream the bridge takes (an ICM-42688 samples at 32 kHz, but no
 #: autopilot streams MAVLink faster than a few kHz); the per-vehicle buffers scale with it.
 MAX_IMU_RATE_HZ = 10_000.0
+#: Longest ``duration`` [s]: a year; beyond it a number is a typo (and the built-in
+#: emulator plans its motion for the whole run).
+MAX_DURATION_S = 365 * 86400.0
+#: setting -> the inclusive range of values that mean something. Wide: a user may set a
+#: poor value, not an absurd one. Past them the service breaks without a word: a rate of
+#: 1e-300 Hz overflows the MAVLink interval, a 1e9 s window allocates terabytes, a full
+#: scale below what a sensor at rest reads (1 g) refuses every sample.
+SETTING_RANGES: dict[str, tuple[float, float]] = {
+    "imu_rate": (1.0, MAX_IMU_RATE_HZ),  # the ring buffers are sized by it
+    "window_s": (0.1, 600.0),  # the comparison's ring buffers: window x rate samples
+    "status_period_s": (0.01, 3600.0),
+    "jump_s": (1e-3, 3600.0),
+    "reorder_s": (0.0, 60.0),
+    "peer_timeout_s": (0.01, 1e6),
+    "max_source_rate": (1.0, 1e7),
+    "source_timeout_s": (0.01, 1e6),
+    "evict_after_s": (0.01, 1e6),
+    "clock_resync_s": (1e-3, 3600.0),
+    "reinit_gap_s": (1e-3, 1e6),
+    "reinit_settle_s": (0.0, 3600.0),
+    "idle_timeout_s": (0.01, 1e6),
+    "gyro_range_dps": (100.0, 1e5),  # the smallest MEMS range is ±125 deg/s
+    "accel_range_g": (2.0, 1e4),  # ±2 g is the smallest; at rest a sensor reads 1 g
+    "mag_range_gauss": (0.7, 1e4),  # the Earth's field is up to 0.65 gauss
+    "aid_max_age_s": (1e-3, 60.0),
+    "mqtt_rate": (0.0, 1e4),
+}
 
 
 def check_ranges(cfg: Any) -> None:
@@ -48,23 +75,15 @@ def check_ranges(cfg: Any) -> None:
         value = getattr(cfg, f.name)
         if isinstance(value, float) and not math.isfinite(value):
             raise ValueError(f"setting {f.name!r} must be a finite number, got {value!r}")
-    positive = ("imu_rate", "window_s", "status_period_s", "jump_s", "peer_timeout_s",
-                "max_source_rate", "source_timeout_s", "evict_after_s", "clock_resync_s",
-                "reinit_gap_s", "idle_timeout_s", "gyro_range_dps", "accel_range_g",
-                "mag_range_gauss", "aid_max_age_s")
-    for name in positive:
-        if not getattr(cfg, name) > 0:
-            raise ValueError(f"setting {name!r} must be positive, got {getattr(cfg, name)!r}")
-    if not cfg.imu_rate <= MAX_IMU_RATE_HZ:  # the ring buffers are sized by it
-        raise ValueError(f"setting 'imu_rate' must be at most {MAX_IMU_RATE_HZ:g} Hz, "
-                         f"got {cfg.imu_rate!r}")
+    for name, (lo, hi) in SETTING_RANGES.items():
+        value = getattr(cfg, name)
+        if not lo <= value <= hi:
+            raise ValueError(f"setting {name!r} must be within {lo:g}..{hi:g}, got {value!r}")
     if cfg.emulator_seed < 0:
         raise ValueError(f"emulator seed must not be negative, got {cfg.emulator_seed}")
-    for name in ("reorder_s", "reinit_settle_s", "mqtt_rate"):
-        if getattr(cfg, name) < 0:
-            raise ValueError(f"setting {name!r} must not be negative")
-    if cfg.duration is not None and not cfg.duration > 0:
-        raise ValueError(f"duration must be positive, got {cfg.duration!r}")
+    if cfg.duration is not None and not 0 < cfg.duration <= MAX_DURATION_S:
+        raise ValueError(f"duration must be more than 0 and at most {MAX_DURATION_S:g} s "
+                         f"(a year), got {cfg.duration!r}")
     if cfg.declination_deg is not None and abs(cfg.declination_deg) > 180.0:
         raise ValueError(f"declination must be within ±180°, got {cfg.declination_deg!r}")
     if not 1 <= cfg.max_peers <= 100_000:

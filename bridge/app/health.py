@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -22,7 +23,20 @@ from typing import Any
 from .cli import seconds
 
 STATUS_FILE_ENV = "ATTITUDE_BRIDGE_STATUS_FILE"
+#: How far in the future a status file's time may be (the writer's and the reader's
+#: clocks are the same machine's; this covers a step of the clock between the two).
+CLOCK_SLACK_S = 2.0
 EXIT_HEALTHY, EXIT_UNHEALTHY = 0, 1
+
+
+def check_status_path(path: str | Path) -> None:
+    """ValueError for a status file path that is not a regular file: the file is
+    replaced by a rename, which would put a regular file where a device (/dev/null) or
+    a pipe was — as root, for every other program on the machine."""
+    p = Path(path)
+    if p.exists() and not p.is_file():
+        raise ValueError(f"--status-file {p}: not a regular file (it is replaced by a "
+                         f"rename at every update); give a file name")
 
 
 def write_status_file(path: str | Path, status: dict[str, Any]) -> None:
@@ -46,6 +60,11 @@ def check(path: Path, max_age_s: float, need_input: bool,
     except (OSError, ValueError, KeyError, TypeError) as exc:
         return False, f"unreadable status file {path}: {exc}"
     age = (time.time() if now is None else now) - written
+    if not math.isfinite(age):
+        return False, f"unreadable status file {path}: time_unix {written!r} is not a time"
+    if age < -CLOCK_SLACK_S:  # a file from the future: not this clock's, or forged
+        return False, (f"status file {path} written {-age:.0f} s in the future (another "
+                       f"machine's clock, or not the bridge's file)")
     if age > max_age_s:
         return False, f"status {age:.0f} s old (the bridge is stuck or stopped)"
     vehicles = status.get("vehicles", {})

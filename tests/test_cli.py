@@ -294,7 +294,7 @@ def test_health_refuses_a_status_file_from_the_future_or_without_a_time(tmp_path
                                                                         time_unix, why):
     """An hour-ahead file said 'healthy: updated -3517.0 s ago', a NaN one 'nan s ago'."""
     status = tmp_path / "status.json"
-    status.write_text('{"time_unix": %s, "vehicles": {}}' % time_unix)
+    status.write_text(f'{{"time_unix": {time_unix}, "vehicles": {{}}}}')
     assert main(["health", "--status-file", str(status)]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("unhealthy: ") and why in err

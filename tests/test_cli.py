@@ -35,6 +35,8 @@ def bad_inputs(tmp: Path, busy: int) -> list[tuple[list[str], str]]:
     bad_toml.write_text("estimator = [\n")
     typo = tmp / "typo.toml"
     typo.write_text('conect = "udpin:0.0.0.0:14550"\n')
+    key_file = tmp / "key"
+    key_file.write_text("a" * 64 + "\n")
     huge_window = tmp / "window.toml"  # was a MemoryError per sample (18 TiB), exit 0
     huge_window.write_text("window-s = 1e9\n")
     log = tmp / "log.csv"
@@ -44,6 +46,12 @@ def bad_inputs(tmp: Path, busy: int) -> list[tuple[list[str], str]]:
         (["run", "--connect", f"udpin:127.0.0.1:{busy}"], "already in use"),
         (["run", "--connect", "udpin:192.0.2.1:14550"], "not on this machine"),
         (["run", "--signing-key", "env:ATTITUDE_BRIDGE_TEST_NO_SUCH_VARIABLE"], "not set"),
+        # read whole, /dev/zero filled 10 GB of memory; '' silently turned signing off
+        (["run", "--connect", "udpin:127.0.0.1:0", "--signing-key", "file:/dev/zero"],
+         "longer than 4096 bytes"),
+        (["run", "--connect", "udpin:127.0.0.1:0", "--signing-key", ""],
+         "an empty --signing-key"),
+        (["run", "--signing-key", str(key_file)], "with the built-in emulator"),
         (["run", "--config", str(tmp / "missing.toml")], "does not exist"),
         (["run", "--config", str(bad_toml)], f"{bad_toml} is not valid TOML"),
         (["run", "--config", str(typo)], "unknown setting 'conect'"),

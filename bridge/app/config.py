@@ -178,7 +178,7 @@ class BridgeConfig:
 
         check_types(self)
         check_ranges(self)
-        if self.signing_key:
+        if self.signing_key is not None:  # "" (an unset variable) is no "signing off"
             try:
                 load_signing_key(self.signing_key)
             except ValueError as exc:
@@ -202,6 +202,10 @@ class BridgeConfig:
             from .emulator import check_emulator
 
             check_emulator(self)
+            if self.signing_key is not None and not self.allow_unsigned:
+                raise ValueError("--signing-key with the built-in emulator: it does not "
+                                 "sign, so every message would be refused (give "
+                                 "--connect, or --allow-unsigned)")
         if not 1 <= self.component_id <= 255 or not 1 <= self.system_id <= 255:
             raise ValueError("component_id and system_id must be in 1..255")
         from ..publish.mqtt import check_mqtt_settings

@@ -108,6 +108,10 @@ def check_output_file(path: str | Path, option: str) -> None:
         raise ValueError(f"{option} {p}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK):
         raise ValueError(f"{option} {p}: folder {folder} is not writable")
+    if p.exists() and not p.is_file():  # a device or a pipe: opening a FIFO would block
+        if not os.access(p, os.W_OK):
+            raise ValueError(f"{option} {p}: cannot be written")
+        return
     existed = p.exists()
     try:  # what access() cannot tell: /proc, a read-only mount, a full quota
         with p.open("a"):

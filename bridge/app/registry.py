@@ -100,7 +100,7 @@ class VehicleRegistry:
         vehicle.primary = None
         vehicle.refs = None
         vehicle.sequences.clear()
-        vehicle.next_mqtt_t.clear()
+        vehicle.mqtt_sent_t.clear()
 
     def evict(self, now: float) -> None:
         """Drop the heavy state of vehicles silent for ``evict_after_s`` (monotonic

@@ -93,7 +93,7 @@ class SampleFlow:
         else:
             self.output.offer(est)
         if self.estimates is not None:
-            self.estimates.offer(est, vehicle.next_mqtt_t)
+            self.estimates.offer(est, vehicle.mqtt_sent_t)
 
     def _log_restart(self, vehicle: Vehicle, sample: ImuSample) -> None:
         """A reboot or an outage restarts the estimate: say so, with the board times."""

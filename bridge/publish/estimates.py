@@ -25,6 +25,9 @@ from .output import euler_zyx
 #: What the JSON on MQTT and in the status file says about its quaternions.
 FRAME = {"frame": "NED", "body_frame": "FRD", "q_order": "wxyz", "north": "true"}
 
+#: Board time a sample may fall short of the period and still be due (stamps are µs).
+PERIOD_SLACK_S = 1e-6
+
 
 def estimator_topics(labels: list[str], names: list[str]) -> dict[str, str]:
     """Estimator label -> topic name: the estimator's name (``mahony``), with ``-2``,
@@ -60,15 +63,22 @@ class EstimatePublisher:
         self.topics = topics_of(pipeline.specs)
         self._user_params = {s.label: s.user_params() for s in pipeline.specs}
 
-    def offer(self, est: Estimate, next_due: dict[Any, float]) -> None:
-        """Publish ``est``'s source if it is due; ``next_due`` (the vehicle's) keeps
-        when each of its sources is due next, in board time."""
-        due = next_due.get(est.key)
-        if due is not None and due - 2.0 > est.t:
-            due = None  # timeline restarted
-        if due is not None and est.t < due:
+    def offer(self, est: Estimate, last_sent: dict[Any, float]) -> None:
+        """Publish ``est``'s source if it is due.
+
+        ``last_sent`` (the vehicle's, cleared when its state is dropped) keeps the board
+        time each of its sources was last published at. Within one timeline board time
+        only grows (ingest drops duplicates and reordered samples), so a sample before
+        it means the timeline restarted (a reboot): published at once, the count starts
+        over. Anything else waits the full period, however long (no guess of "too far
+        ahead": at 0.25 Hz the period itself is 4 s). The comparison allows
+        :data:`PERIOD_SLACK_S`: board times are whole µs, so ``0.204 - 0.104`` falls a
+        hair short of 0.1 and would otherwise cost a sample every period.
+        """
+        last = last_sent.get(est.key)
+        if last is not None and last <= est.t and est.t - last < self.period - PERIOD_SLACK_S:
             return
-        next_due[est.key] = est.t + self.period
+        last_sent[est.key] = est.t
         src = self.pipeline.sources[est.key]
         now = time.time()
         declination = math.degrees(src.declination_rad)

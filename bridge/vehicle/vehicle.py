@@ -86,7 +86,7 @@ class Vehicle:
     #: to the estimators
     flight_board_switches: deque = field(default_factory=lambda: deque(maxlen=64))
     sequences: dict[int, SequenceTracker] = field(default_factory=dict)
-    next_mqtt_t: dict[Any, float] = field(default_factory=dict)
+    mqtt_sent_t: dict[Any, float] = field(default_factory=dict)
     samples_at_last_status: int = 0
     refused: dict[str, int] = field(default_factory=lambda: dict.fromkeys(REFUSALS, 0))
 

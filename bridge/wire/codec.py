@@ -54,6 +54,10 @@ def signing_key_from_text(text: str) -> bytes:
     return hashlib.sha256(text.encode()).digest()
 
 
+#: Longest signing key file read: 64 hex digits or a passphrase, with room to spare.
+MAX_KEY_FILE_BYTES = 4096
+
+
 def load_signing_key(spec: str) -> bytes:
     """Key from ``env:NAME`` (an environment variable) or ``file:PATH`` / a plain path."""
     if spec.startswith("env:"):
@@ -62,11 +66,24 @@ def load_signing_key(spec: str) -> bytes:
         if value is None:
             raise ValueError(f"signing key environment variable {name!r} is not set")
         return signing_key_from_text(value)
-    path = Path(spec[5:] if spec.startswith("file:") else spec)
+    name = spec[5:] if spec.startswith("file:") else spec
+    if not name.strip():
+        raise ValueError("no signing key file given (an empty --signing-key)")
+    path = Path(name)
     try:
-        return signing_key_from_text(path.read_text())
+        with path.open("rb") as f:  # a key is short: /dev/zero must not fill the memory
+            data = f.read(MAX_KEY_FILE_BYTES + 1)
     except OSError as exc:
-        raise ValueError(f"cannot read signing key file {path}: {exc}") from None
+        raise ValueError(f"cannot read signing key file {path}: "
+                         f"{exc.strerror or exc}") from None
+    if len(data) > MAX_KEY_FILE_BYTES:
+        raise ValueError(f"signing key file {path}: longer than {MAX_KEY_FILE_BYTES} bytes, "
+                         f"not a key (64 hex digits or a passphrase)")
+    try:
+        return signing_key_from_text(data.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise ValueError(f"signing key file {path}: not text (64 hex digits or a "
+                         f"passphrase)") from None
 
 
 def _signing_now() -> int:

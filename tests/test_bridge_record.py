@@ -10,6 +10,9 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 from bridge_support import async_test
@@ -85,3 +88,19 @@ async def test_recording_replays_to_what_the_bridge_sent(tmp_path):
     assert len(pairs) > 0.95 * len(sent)
     live, offline = map(np.array, zip(*pairs, strict=True))
     assert np.degrees(Q.angle_between(live, offline)).max() < 0.01
+
+
+def test_a_recording_that_cannot_be_written_stops_with_one_warning(tmp_path):
+    """`--record` on a full disk (/dev/full says ENOSPC to every write) printed a
+    traceback per frame, about 2,700 in two seconds; now one warning, the bridge goes
+    on, and the summary says the recording stopped early."""
+    repo = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-m", "bridge.app.cli", "run", "--duration", "2",
+                          "-q", "--record", "/dev/full"], cwd=repo, capture_output=True,
+                         text=True, timeout=120)
+    text = out.stdout + out.stderr
+    assert out.returncode == 0, text[-2000:]
+    assert "Traceback" not in text
+    assert text.count("recording to /dev/full stopped: No space left on device") == 1
+    assert "to /dev/full, stopped early: No space left on device" in text
+    assert " estimates sent" in text

@@ -14,12 +14,15 @@ with every status update so that a killed bridge loses at most a second.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import struct
 import time
 from pathlib import Path
 from typing import BinaryIO
 
 _STAMP = struct.Struct(">Q")
+log = logging.getLogger(__name__)
 
 
 class TlogRecorder:
@@ -31,29 +34,56 @@ class TlogRecorder:
         self.frames_in = 0
         self.frames_out = 0
         self.bytes = 0
+        self.failed: str = ""  # why the recording stopped early ("" while it goes on)
 
     def record(self, frame: bytes, incoming: bool) -> None:
         """One MAVLink frame, as read or as written."""
         f = self._file
         if f is None:
             return
-        f.write(_STAMP.pack(int(time.time() * 1e6)))
-        f.write(frame)
+        try:
+            f.write(_STAMP.pack(int(time.time() * 1e6)))
+            f.write(frame)
+        except OSError as exc:
+            self._stop(exc)
+            return
         self.bytes += len(frame) + 8
         if incoming:
             self.frames_in += 1
         else:
             self.frames_out += 1
 
+    def _stop(self, exc: OSError) -> None:
+        """A write failed (a full disk, a removed drive): the recording stops, once and
+        with one warning, and the bridge goes on — its job is the attitude, and a
+        traceback per frame would bury everything else in the log."""
+        f, self._file = self._file, None
+        self.failed = exc.strerror or str(exc)
+        log.warning("recording to %s stopped: %s (the bridge goes on without it)",
+                    self.path, self.failed)
+        if f is not None:
+            with contextlib.suppress(OSError):  # the buffered rest cannot be written either
+                f.close()
+
     def flush(self) -> None:
         if self._file is not None:
-            self._file.flush()
+            try:
+                self._file.flush()
+            except OSError as exc:
+                self._stop(exc)
 
     def close(self) -> None:
+        if self._file is None:
+            return
+        try:
+            self._file.flush()
+        except OSError as exc:
+            self._stop(exc)
+            return
         f, self._file = self._file, None
-        if f is not None:
-            f.close()
+        f.close()
 
     def summary(self) -> str:
+        stopped = f", stopped early: {self.failed}" if self.failed else ""
         return (f"recorded {self.frames_in} frames in and {self.frames_out} out "
-                f"({self.bytes / 1e6:.1f} MB) to {self.path}")
+                f"({self.bytes / 1e6:.1f} MB) to {self.path}{stopped}")

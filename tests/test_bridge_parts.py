@@ -270,3 +270,19 @@ def test_status_file_that_cannot_be_written_is_a_warning(tmp_path, caplog):
     caplog.set_level(logging.WARNING, logger="bridge")
     svc.publish_status()
     assert any("cannot write the status file" in r.getMessage() for r in caplog.records)
+
+
+def test_a_declination_the_user_set_survives_the_vehicles_own():
+    """`run -e eskf:declination_deg=90` was overridden by the vehicle's parameter or the
+    World Magnetic Model without a word; the other estimators follow the vehicle's."""
+    import math
+
+    from bridge.estimate.pipeline import SourcePipeline
+    from estimators.spec import EstimatorSpec
+
+    specs = [EstimatorSpec.parse("eskf"), EstimatorSpec.parse("eskf:declination_deg=90")]
+    src = SourcePipeline(SourceKey(1, 1, 27, 0), specs, 250.0, 16)
+    src.set_declination(math.radians(12.0))
+    follows, kept = (est.params.declination for est in src.estimators)
+    assert math.degrees(follows) == pytest.approx(12.0)
+    assert math.degrees(kept) == pytest.approx(90.0)

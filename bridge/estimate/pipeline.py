@@ -106,10 +106,13 @@ class SourcePipeline:
                                                             strict=True)}
 
     def set_declination(self, declination_rad: float) -> None:
-        """Report true north with another declination from now on, estimate kept."""
+        """Report true north with another declination from now on, estimate kept; not
+        for an estimator whose declination the user set (``-e NAME:declination_deg=``):
+        the vehicle's parameter or the World Magnetic Model overrode it without a word."""
         self.declination_rad = declination_rad
-        for est in self.estimators:
-            est.set_declination(declination_rad)
+        for spec, est in zip(self.specs, self.estimators, strict=True):
+            if "declination" not in spec.params:
+                est.set_declination(declination_rad)
 
     def set_imu_delay(self, delay_s: float) -> None:
         """Carry the output forward by another IMU delay from now on, estimate kept;

@@ -235,3 +235,16 @@ async def test_a_handler_that_fails_on_every_message_is_counted_not_a_traceback_
     assert len(tracebacks) == 1
     assert warnings == [f"udpin:127.0.0.1:{port}: handling RAW_IMU has failed {n} times "
                         f"(ZeroDivisionError: division by zero)" for n in (10, 100)]
+
+
+def test_an_output_the_os_refuses_is_told_once_and_counted():
+    """`--out udpout:255.255.255.255:14550` (broadcast without SO_BROADCAST): every send
+    failed with EACCES, nothing was logged and the status said 0 send errors."""
+    out = subprocess.run([sys.executable, "-m", "bridge.app.cli", "run", "--duration", "2",
+                          "-q", "--out", "udpout:255.255.255.255:9"], cwd=REPO,
+                         capture_output=True, text=True, timeout=120)
+    text = out.stdout + out.stderr
+    assert out.returncode == 0, text[-2000:]
+    assert text.count("udpout:255.255.255.255:9: cannot send to 255.255.255.255:9: "
+                      "Permission denied") == 1
+    assert " output udpout:255.255.255.255:9: {'send_errors': " in text

@@ -177,6 +177,9 @@ class StatusReporter:
              "peers": ls.peers,
              "peers_refused": ls.peers_refused, "peers_expired": ls.peers_expired,
              "handler_failures": ls.handler_failures,
+             "outs": {out.name: {"send_errors": out.stats.send_errors,
+                                 "send_dropped": out.stats.send_dropped}
+                      for out in self.output.links if out is not self.link},
              "gate": self.admission.stats.to_dict(), "refused": dict(self.registry.refused),
              "vehicles": sorted(self.registry.vehicles)}
         if self.mqtt is not None:

@@ -203,6 +203,10 @@ def summary(service: BridgeService) -> str:
     causes.update({k: v for k, v in link["refused"].items() if v})
     lines.append(f" connection: {link['peers']} peers answered, refused/dropped "
                  f"{causes or 'nothing'}")
+    for name, counts in link["outs"].items():
+        failed = {k: v for k, v in counts.items() if v}
+        if failed:
+            lines.append(f" output {name}: {failed}")
     if service.recorder is not None:
         lines.append(f" {service.recorder.summary()}")
     return "\n".join(lines)

@@ -133,15 +133,23 @@ def board_for(autopilot: int | None) -> str:
 
 
 def parse_forced(text: str | None) -> tuple[str, ...] | None:
-    """``--imu-message``: None (negotiate), one name or a comma-separated order."""
+    """``--imu-message``: None (negotiate), one name or a comma-separated order.
+
+    An error names the unknown name(s) as typed, not the whole list: in
+    ``RAW_IMU,FOO`` only FOO is wrong, and the user must see which.
+    """
     if text is None:
         return None
-    names = tuple(n.strip().upper() for n in text.split(",") if n.strip())
-    unknown = [n for n in names if n not in IMU_MESSAGE_NAMES]
-    if not names or unknown:
-        raise ValueError(f"unknown IMU message {text!r}; valid: {sorted(IMU_MESSAGE_NAMES)} "
-                         f"(one, or several separated by commas in the order to try)")
-    return names
+    typed = [n.strip() for n in text.split(",") if n.strip()]
+    valid = (f"valid: {sorted(IMU_MESSAGE_NAMES)} "
+             f"(one, or several separated by commas in the order to try)")
+    if not typed:
+        raise ValueError(f"--imu-message {text!r} names no IMU message; {valid}")
+    unknown = [n for n in typed if n.upper() not in IMU_MESSAGE_NAMES]
+    if unknown:
+        raise ValueError(f"unknown IMU message(s) {', '.join(map(repr, unknown))} in "
+                         f"--imu-message {text!r}; {valid}")
+    return tuple(n.upper() for n in typed)
 
 
 @dataclass

@@ -139,6 +139,7 @@ class Link:
         self.stats = LinkStats()
         self.last_receive = 0.0  # time.monotonic() of the last valid message
         self._failure_kinds: dict[tuple[str, str], int] = {}  # (message, exception) -> n
+        self._send_errnos: set[int] = set()  # kinds of send error already told
         self.last_addr: tuple | None = None  # sender of the message being handled
         #: How long the datagram being handled waited in the kernel before it was read
         #: (UDP, from its kernel receive time; 0 where there is none): what a busy event
@@ -210,6 +211,18 @@ class Link:
                 self.on_message(msg, self)
             except Exception as exc:  # one bad message must not kill the link
                 self._handler_failed(msg.get_type(), exc)
+
+    def _send_failed(self, exc: OSError, addr: tuple | None = None) -> None:
+        """Count a send the OS refused; say so once per kind of error (a broadcast
+        address without permission, no route): an output that never leaves this machine
+        must not look like one that works."""
+        self.stats.send_errors += 1
+        key = exc.errno or 0
+        if key not in self._send_errnos:
+            self._send_errnos.add(key)
+            where = f" to {addr[0]}:{addr[1]}" if addr else ""
+            log.warning("%s: cannot send%s: %s (counted as send_errors)", self.name, where,
+                        exc.strerror or exc)
 
     def _handler_failed(self, msg_type: str, exc: Exception) -> None:
         """Count a message whose handling raised; the traceback once per kind of failure

@@ -206,8 +206,8 @@ class UdpLink(Link):
             sock.sendto(data, addr)
         except BlockingIOError:
             self.stats.send_dropped += 1
-        except OSError:
-            self.stats.send_errors += 1
+        except OSError as exc:
+            self._send_failed(exc, addr)
 
     def _write(self, data: bytes) -> None:
         targets = [self._target] if self._target is not None else self.peers()

@@ -168,6 +168,11 @@ async def test_run_command_serves_and_stops_on_sigint():
 @pytest.mark.parametrize(("url", "why"), [
     ("tcp:nonexistent.invalid:5760", "cannot resolve host 'nonexistent.invalid'"),
     ("/dev/ttyDOESNOTEXIST:921600", "no such serial device '/dev/ttyDOESNOTEXIST'"),
+    # not a terminal: pyserial said "Inappropriate ioctl" and it was retried for ever
+    ("/dev/zero:57600", "'/dev/zero' is not a serial device"),
+    ("/dev/null", "'/dev/null' is not a serial device"),
+    ("/dev/zero:0", "baud rate 0 is not one a port runs at"),
+    ("/dev/zero:abc", "bad baud rate 'abc'"),  # was "no such serial device"
 ])
 def test_run_refuses_a_link_that_cannot_exist_at_start(url, why):
     """A host name that does not resolve or a serial device that is not there is a typo:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import errno
 import logging
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -85,6 +86,10 @@ class LinkUrl:
         return f"{self.kind}:{self.host}:{self.port}"
 
 
+#: Baud rates a serial port runs at (termios knows 50 to a few Mbaud; USB CDC takes any).
+MIN_BAUD, MAX_BAUD = 50, 20_000_000
+
+
 def parse_url(url: str) -> LinkUrl:
     """Parse a pymavlink-style URL; ValueError saying what is accepted otherwise."""
     text = url.strip()
@@ -103,7 +108,13 @@ def parse_url(url: str) -> LinkUrl:
                 text.startswith("serial:"):
             name, sep, baud = device.rpartition(":")
             if sep and baud.isdigit():
+                if not MIN_BAUD <= int(baud) <= MAX_BAUD:
+                    raise ValueError(f"serial {name}: baud rate {baud} is not one a port "
+                                     f"runs at ({MIN_BAUD}..{MAX_BAUD})")
                 return LinkUrl(kind="serial", device=name, baud=int(baud))
+            if sep and name and os.path.exists(name):
+                raise ValueError(f"serial {name}: bad baud rate {baud!r}; e.g. "
+                                 f"{name}:921600")
             return LinkUrl(kind="serial", device=device)
     raise ValueError(f"bad connection URL {url!r}; use udpin:HOST:PORT, udpout:HOST:PORT, "
                      f"tcp:HOST:PORT or a serial device like /dev/ttyUSB0:921600")

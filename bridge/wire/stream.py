@@ -210,6 +210,21 @@ def _keepalive(sock: socket.socket | None, idle_s: float) -> None:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPCNT, 3)
 
 
+
+def _is_terminal(device: str) -> bool:
+    """Whether ``device`` is a terminal (a serial port is one; /dev/zero, /dev/null and
+    files are not, and pyserial would fail on them for ever with 'Inappropriate ioctl').
+    Opened without becoming the controlling terminal and without waiting for carrier;
+    a device that cannot be opened now (busy, no permission) is left to the retries."""
+    try:
+        fd = os.open(device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    except OSError:
+        return True
+    try:
+        return os.isatty(fd)
+    finally:
+        os.close(fd)
+
 class SerialLink(_StreamLink):
     """A serial port via pyserial in non-blocking mode, read through ``add_reader``."""
 
@@ -231,6 +246,9 @@ class SerialLink(_StreamLink):
         device = self.url.device
         if "/" in device and not os.path.exists(device):
             raise LinkError(f"{self.name}: no such serial device {device!r}")
+        if "/" in device and not _is_terminal(device):
+            raise LinkError(f"{self.name}: {device!r} is not a serial device (not a "
+                            f"terminal: a file, /dev/null or the like)")
 
     async def _session(self) -> None:
         import serial  # pyserial; imported here so UDP-only use does not need it

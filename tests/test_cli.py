@@ -60,6 +60,7 @@ def bad_inputs(tmp: Path, busy: int) -> list[tuple[list[str], str]]:
         (["run", "--estimator", "mahony:kp=fast"], "kp"),
         (["run", "--estimator", "eskf:declination_deg=400"], "declination"),
         (["run", "--imu-rate", "-1"], "imu_rate"),
+        (["run", "--component-id", "1"], "is the autopilot's"),  # served nothing, silently
         (["run", "--mqtt", "http://broker"], "MQTT URL"),
         (["run", "--record", str(tmp / "no" / "session.tlog")], "does not exist"),
         (["demo", "--duration", "0"], "duration must be more than 0"),

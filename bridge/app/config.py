@@ -91,6 +91,10 @@ def default_estimator() -> str:
     return available[0]
 
 
+#: MAV_COMP_ID_AUTOPILOT1: where a vehicle's IMU streams come from.
+AUTOPILOT_COMPONENT_ID = 1
+
+
 @dataclass
 class BridgeConfig:
     """Everything the bridge service needs to run."""
@@ -208,6 +212,10 @@ class BridgeConfig:
                                  "--connect, or --allow-unsigned)")
         if not 1 <= self.component_id <= 255 or not 1 <= self.system_id <= 255:
             raise ValueError("component_id and system_id must be in 1..255")
+        if self.component_id == AUTOPILOT_COMPONENT_ID:
+            raise ValueError(f"component_id {AUTOPILOT_COMPONENT_ID} is the autopilot's "
+                             f"(MAV_COMP_ID_AUTOPILOT1): the bridge would take the vehicle's "
+                             f"messages for its own echo and serve nothing")
         from ..publish.mqtt import check_mqtt_settings
 
         check_mqtt_settings(self)

@@ -33,14 +33,28 @@ import numpy as np
 MAX_GYRO_OFFSET = math.radians(50.0)  # rad/s
 MAX_ACCEL_OFFSET = 3.0  # m/s^2
 MAX_MAG_OFFSET = 8.0  # gauss
+#: Plausible overall scale |det M|^(1/3) of the gyro and accelerometer matrices. These
+#: correct scale-factor errors: the MPU6050's are ±3 % at 25 °C (datasheet "sensitivity
+#: scale factor tolerance") plus a few percent over temperature and cross-axis terms, so
+#: a real correction stays within some 10 %; 0.8..1.25 (symmetric in log, 1/1.25 = 0.8)
+#: leaves ample room for a worse chip. Beyond it the matrix is a unit or file mistake
+#: (100·I made every accelerometer sample implausible and froze the eskf without a word).
+IMU_SCALE_RANGE = (0.8, 1.25)
+#: The magnetometer matrix's scale is free (only the field's direction is used, and a fit
+#: or a hand-made file may change the unit: gauss to microtesla is 100), so it is bounded
+#: only against absurd values: at 1e-6 the Earth's field (0.25..0.65 gauss) is still 1e5
+#: times the estimators' zero-norm threshold (1e-12), at 1e6 a saturated 8 gauss reading
+#: squared (6.4e13) is far from overflow.
+MAG_SCALE_RANGE = (1e-6, 1e6)
 #: (TOML table, offset key, matrix key, dataclass offset field, dataclass matrix field,
-#: (largest offset, its unit, the same in words))
+#: (largest offset, its unit, the same in words), plausible matrix scale range)
 _SECTIONS = (
     ("gyro", "offset", "matrix", "gyro_offset", "gyro_matrix",
-     (MAX_GYRO_OFFSET, "rad/s", f"{math.degrees(MAX_GYRO_OFFSET):g} deg/s")),
+     (MAX_GYRO_OFFSET, "rad/s", f"{math.degrees(MAX_GYRO_OFFSET):g} deg/s"), IMU_SCALE_RANGE),
     ("accel", "offset", "matrix", "accel_offset", "accel_matrix",
-     (MAX_ACCEL_OFFSET, "m/s^2", f"{MAX_ACCEL_OFFSET / 9.80665:.2g} g")),
-    ("mag", "offset", "matrix", "mag_offset", "mag_matrix", (MAX_MAG_OFFSET, "gauss", "")),
+     (MAX_ACCEL_OFFSET, "m/s^2", f"{MAX_ACCEL_OFFSET / 9.80665:.2g} g"), IMU_SCALE_RANGE),
+    ("mag", "offset", "matrix", "mag_offset", "mag_matrix", (MAX_MAG_OFFSET, "gauss", ""),
+     MAG_SCALE_RANGE),
 )
 #: Smallest allowed |det| relative to the product of row norms: below it the matrix
 #: squashes a direction to (almost) nothing, which no real correction does.
@@ -96,7 +110,16 @@ def _vector(value: object, name: str, limit: tuple[float, str, str]) -> np.ndarr
     return v
 
 
-def _matrix(value: object, name: str) -> np.ndarray:
+def _matrix(value: object, name: str, scale_range: tuple[float, float]) -> np.ndarray:
+    """A 3x3 correction matrix: finite, not singular, no axis flip, its scale
+    |det|^(1/3) within ``scale_range`` and within MAX_RELATIVE_DISTORTION of that
+    multiple of the identity.
+
+    Everything is computed from the rows normalised to unit length (their norms kept in
+    logs), so entries near the float limits (1e308, 1e-300) neither overflow nor
+    underflow: such a matrix is refused as not a plausible correction, not as singular,
+    and without a numpy warning.
+    """
     _refuse_bools(value, name)
     try:
         m = np.array(value, dtype=float)
@@ -107,17 +130,34 @@ def _matrix(value: object, name: str) -> np.ndarray:
                          f"{m.shape}")
     if not np.all(np.isfinite(m)):
         raise ValueError(f"{name} must be finite, got {m.tolist()}")
-    # Entries near the float limits (1e300) overflow the determinant to inf and tiny
-    # ones underflow the row norms to 0: both end in the refusals below, so quietly.
-    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
-        rows = np.prod(np.linalg.norm(m, axis=1))
-        det = np.linalg.det(m)
-        if rows == 0.0 or abs(det) < MIN_RELATIVE_DET * rows:
-            raise ValueError(f"{name} is singular (it would flatten the measured vector): "
-                             f"{m.tolist()}")
-        scale = abs(det) ** (1.0 / 3.0)
-        distortion = np.max(np.abs(m / scale - np.eye(3) * np.sign(det)))
-    if det < 0.0 or not distortion <= MAX_RELATIVE_DISTORTION:
+    peaks = np.max(np.abs(m), axis=1)
+    if np.any(peaks == 0.0):
+        raise ValueError(f"{name} is singular (it would flatten the measured vector): "
+                         f"{m.tolist()}")
+    # Each row divided by its largest entry (all in [-1, 1], one of them ±1), then by
+    # its norm (between 1 and sqrt(3)): |det| of the result is |det m| relative to the
+    # product of row norms, in [0, 1] (Hadamard), and the log scale needs no product.
+    with np.errstate(under="ignore"):  # a 1e-300 beside a 1 becomes 0: harmless here
+        unit = m / peaks[:, None]
+        norms = np.linalg.norm(unit, axis=1)
+        unit /= norms[:, None]
+    relative_det = float(np.linalg.det(unit))
+    if abs(relative_det) < MIN_RELATIVE_DET:
+        raise ValueError(f"{name} is singular (it would flatten the measured vector): "
+                         f"{m.tolist()}")
+    # In logs: |det|^(1/3) of 1.7e308 entries is beyond the largest float.
+    log10_scale = float(np.sum(np.log10(peaks) + np.log10(norms))
+                        + math.log10(abs(relative_det))) / 3.0
+    low, high = scale_range
+    if not math.log10(low) <= log10_scale <= math.log10(high):
+        shown = f"{10.0 ** log10_scale:.3g}" if abs(log10_scale) < 300 else f"1e{log10_scale:+.0f}"
+        raise ValueError(f"{name} is not a plausible correction (scale |det|^(1/3) = "
+                         f"{shown}, not in {low:g}..{high:g}; a wrong unit or file?): "
+                         f"{m.tolist()}")
+    scale = 10.0 ** log10_scale
+    with np.errstate(over="ignore", invalid="ignore"):  # a 1e308 entry: inf, refused below
+        distortion = np.max(np.abs(m / scale - np.eye(3) * np.sign(relative_det)))
+    if relative_det < 0.0 or not distortion <= MAX_RELATIVE_DISTORTION:
         raise ValueError(f"{name} is not a plausible correction (a few percent from a "
                          f"multiple of the identity, no axis flip): {m.tolist()}")
     return m
@@ -142,10 +182,10 @@ class SensorCalibration:
     mag_matrix: np.ndarray = field(default_factory=_eye)
 
     def __post_init__(self) -> None:
-        for _, _, _, off, mat, limit in _SECTIONS:
+        for _, _, _, off, mat, limit, scales in _SECTIONS:
             object.__setattr__(self, off, _vector(getattr(self, off), off, limit))
             if mat is not None:
-                object.__setattr__(self, mat, _matrix(getattr(self, mat), mat))
+                object.__setattr__(self, mat, _matrix(getattr(self, mat), mat, scales))
         for name in ("gyro_offset", "gyro_matrix", "accel_offset", "accel_matrix",
                      "mag_offset", "mag_matrix"):
             getattr(self, name).setflags(write=False)
@@ -188,7 +228,7 @@ class SensorCalibration:
             raise ValueError(f"unknown calibration table(s) {unknown}; valid: "
                              f"{sorted(known)}")
         values: dict[str, np.ndarray] = {}
-        for table, off_key, mat_key, off, mat, limit in _SECTIONS:
+        for table, off_key, mat_key, off, mat, limit, scales in _SECTIONS:
             section = data.get(table, {})
             if not isinstance(section, dict):
                 raise ValueError(f"[{table}] must be a table")
@@ -200,7 +240,7 @@ class SensorCalibration:
             if off_key in section:
                 values[off] = _vector(section[off_key], f"{table}.{off_key}", limit)
             if mat_key and mat_key in section:
-                values[mat] = _matrix(section[mat_key], f"{table}.{mat_key}")
+                values[mat] = _matrix(section[mat_key], f"{table}.{mat_key}", scales)
         return cls(**values)
 
     @classmethod
@@ -234,7 +274,7 @@ class SensorCalibration:
         lines.append("# attitude-bridge sensor calibration: corrected = matrix @ (raw - offset),")
         lines.append("# body FRD, SI (rad/s, m/s^2; magnetometer in gauss), after board scaling "
                      "and rotation.")
-        for table, off_key, mat_key, off, mat, _ in _SECTIONS:
+        for table, off_key, mat_key, off, mat, _, _ in _SECTIONS:
             lines += ["", f"[{table}]", f"{off_key} = {vec(getattr(self, off))}"]
             if mat_key:
                 rows = ",\n    ".join(vec(r) for r in getattr(self, mat))

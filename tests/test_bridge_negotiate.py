@@ -143,3 +143,28 @@ async def test_vehicle_that_never_answers_is_used_as_it_streams(caplog):
                                         mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED}
     assert any("does not answer SET_MESSAGE_INTERVAL" in w for w in warnings_of(caplog))
     assert stream["achieved_hz"] == pytest.approx(500.0, rel=0.02)
+
+
+@pytest.mark.parametrize("text, bad", [
+    ("RAW_IMU,FOO", "'FOO'"),
+    ("foo, raw_imu", "'foo'"),
+    ("RAW_IMU,FOO,BAR", "'FOO', 'BAR'"),
+    ("FOO", "'FOO'"),
+])
+def test_forced_message_error_names_the_bad_name(text, bad):
+    """``--imu-message RAW_IMU,FOO`` said the unknown name was 'RAW_IMU,FOO'."""
+    from bridge.vehicle.negotiate import parse_forced
+
+    with pytest.raises(ValueError) as info:
+        parse_forced(text)
+    message = str(info.value)
+    assert f"unknown IMU message(s) {bad} in --imu-message {text!r}" in message
+    assert f"valid: {sorted(IMU_MESSAGE_NAMES)}" in message and "\n" not in message
+
+
+def test_forced_message_list_without_a_name_is_refused():
+    from bridge.vehicle.negotiate import parse_forced
+
+    with pytest.raises(ValueError, match=r"--imu-message ' , ' names no IMU message; valid: "):
+        parse_forced(" , ")
+    assert parse_forced(" raw_imu , HIGHRES_IMU ") == ("RAW_IMU", "HIGHRES_IMU")

@@ -493,3 +493,78 @@ def test_a_file_that_is_not_utf8_is_named(tmp_path):
     with pytest.raises(ValueError, match=r"not valid TOML \(not UTF-8 text") as info:
         SensorCalibration.load(path)
     assert str(info.value).startswith(f"{path}: ")
+
+
+# --- correction matrices of implausible scale (hostile-input sweep) ---------------------
+
+@pytest.mark.parametrize("text, message", [
+    # 100·I passed as "a multiple of the identity", then every accelerometer sample was
+    # implausible after scaling and the eskf output froze without a word.
+    ("[accel]\nmatrix = [[100, 0, 0], [0, 100, 0], [0, 0, 100]]\n",
+     r"accel\.matrix is not a plausible correction \(scale \|det\|\^\(1/3\) = 100, "),
+    ("[gyro]\nmatrix = [[100, 0, 0], [0, 100, 0], [0, 0, 100]]\n",
+     r"gyro\.matrix is not a plausible correction \(scale \|det\|\^\(1/3\) = 100, "),
+    ("[accel]\nmatrix = [[0.5, 0, 0], [0, 0.5, 0], [0, 0, 0.5]]\n",
+     r"accel\.matrix is not a plausible correction \(scale .* = 0\.5, not in 0\.8\.\.1\.25"),
+    ("[gyro]\nmatrix = [[1.4, 0, 0], [0, 1.4, 0], [0, 0, 1.4]]\n",
+     r"gyro\.matrix is not a plausible correction \(scale .* = 1\.4, not in 0\.8\.\.1\.25"),
+    # The magnetometer's scale is free, but not to where the field vanishes or overflows.
+    ("[mag]\nmatrix = [[1e7, 0, 0], [0, 1e7, 0], [0, 0, 1e7]]\n",
+     r"mag\.matrix is not a plausible correction \(scale .* = 1e\+07, not in 1e-06\.\.1e\+06"),
+    ("[mag]\nmatrix = [[1e-7, 0, 0], [0, 1e-7, 0], [0, 0, 1e-7]]\n",
+     r"mag\.matrix is not a plausible correction \(scale .* = 1e-07, not in 1e-06\.\.1e\+06"),
+])
+def test_matrices_of_implausible_scale_are_refused(tmp_path, text, message):
+    path = tmp_path / "scale.toml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=message) as info:
+        SensorCalibration.load(path)
+    assert str(info.value).startswith(f"{path}: ") and "\n" not in str(info.value)
+
+
+def test_plausible_scales_still_load_and_the_magnetometer_scale_is_free():
+    """MEMS scale errors of 15 % with cross-axis terms pass; a magnetometer matrix may
+    carry any unit change (gauss to microtesla: 100) since only its direction is used."""
+    tilt = np.array([[0.0, 0.02, -0.01], [0.015, 0.0, 0.02], [-0.02, 0.01, 0.0]])
+    SensorCalibration(gyro_matrix=1.15 * np.eye(3) + tilt, accel_matrix=0.85 * np.eye(3) + tilt,
+                      mag_matrix=100.0 * (SOFT_IRON + tilt))
+    SensorCalibration(mag_matrix=1e-3 * np.eye(3))
+    with pytest.raises(ValueError, match=r"accel_matrix is not a plausible correction \(scale"):
+        SensorCalibration(accel_matrix=100.0 * np.eye(3))
+
+
+@pytest.mark.filterwarnings("error")  # a numpy RuntimeWarning must not reach the user
+@pytest.mark.parametrize("table", ["gyro", "accel", "mag"])
+@pytest.mark.parametrize("matrix", [
+    "[[1e308, 0, 0], [0, 1, 0], [0, 0, 1]]",
+    "[[1, 0, 0], [0, 1e308, 0], [0, 0, 1e-300]]",  # scale 1e2.7, wildly anisotropic
+    "[[1e308, 1e308, 0], [-1e308, 1e308, 0], [0, 0, 1]]",
+    "[[1e-300, 0, 0], [0, 1, 0], [0, 0, 1]]",
+    # |det|^(1/3) beyond the largest float (1.8e308): must not raise OverflowError.
+    "[[1.7e308, 1.7e308, 1.7e308], [1.7e308, -1.7e308, 1.7e308], [1.7e308, 1.7e308, -1.7e308]]",
+])
+def test_an_absurd_magnitude_is_not_called_singular(tmp_path, table, matrix):
+    """A 1e308 entry overflowed the row norms to inf and the matrix was refused as
+    'singular'; it is a not plausible correction, and the message must say that."""
+    path = tmp_path / "absurd.toml"
+    path.write_text(f"[{table}]\nmatrix = {matrix}\n")
+    with pytest.raises(ValueError, match=rf"{table}\.matrix is not a plausible correction"):
+        SensorCalibration.load(path)
+
+
+@pytest.mark.filterwarnings("error")
+def test_a_singular_matrix_of_huge_entries_is_still_called_singular(tmp_path):
+    path = tmp_path / "flat.toml"
+    path.write_text("[mag]\nmatrix = [[1e308, 0, 0], [1e308, 0, 0], [0, 0, 1]]\n")
+    with pytest.raises(ValueError, match=r"mag\.matrix is singular"):
+        SensorCalibration.load(path)
+
+
+def test_run_command_refuses_a_calibration_of_implausible_scale(tmp_path, capsys):
+    """The sweep's reproduction: `run --calibration X.toml` with ``[accel] matrix = 100·I``
+    ran with a frozen eskf; it must stop before starting, naming the file and the key."""
+    path = tmp_path / "x.toml"
+    path.write_text("[accel]\nmatrix = [[100, 0, 0], [0, 100, 0], [0, 0, 100]]\n")
+    assert cli_main(["run", "--duration", "3", "--calibration", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert str(path) in err and "accel.matrix is not a plausible correction" in err

@@ -209,6 +209,11 @@ def test_parse_url_forms():
     for bad in ("udpout:host", "http://x", "tcp:h:0", "udpin:h:70000"):
         with pytest.raises(ValueError, match="bad connection URL"):
             parse_url(bad)
+    # IPv6 literals in brackets, as URLs write them: TCP takes them, UDP says it cannot
+    # (it said "cannot resolve host '[::1]'")
+    assert parse_url("tcp:[::1]:5760").host == "::1"
+    with pytest.raises(ValueError, match="UDP links are IPv4 only"):
+        parse_url("udpin:[::1]:14550")
 
 
 def _packet(sysid=1, compid=1, mav=None) -> bytes:

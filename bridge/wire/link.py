@@ -101,6 +101,11 @@ def parse_url(url: str) -> LinkUrl:
             lowest = 0 if kind == "udpin" else 1  # udpin:HOST:0 picks a free port
             if not sep or not port.isdigit() or not lowest <= int(port) < 65536:
                 break
+            if host.startswith("[") and host.endswith("]"):  # an IPv6 literal, as in URLs
+                host = host[1:-1]
+                if kind != "tcp":
+                    raise ValueError(f"bad connection URL {url!r}: UDP links are IPv4 only "
+                                     f"(e.g. udpin:0.0.0.0:14550); tcp: takes IPv6")
             return LinkUrl(kind=kind, host=host or "0.0.0.0", port=int(port))
     else:
         device = text[len("serial:"):] if text.startswith("serial:") else text

@@ -20,8 +20,10 @@ WINDOW = 16  # samples per window when looking for the quietest stretches
 
 def rest_magnitude(acc: np.ndarray) -> float:
     """|acc| while the vehicle is quietest: the median over the calmest quarter of
-    16-sample windows (relative spread of |acc|), so manoeuvres do not bias it."""
-    norm = np.linalg.norm(np.asarray(acc, dtype=float), axis=1)
+    16-sample windows (relative spread of |acc|), so manoeuvres do not bias it. A sample
+    whose norm overflows (1e200: a wrong unit or corrupt) counts as not finite."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        norm = np.linalg.norm(np.asarray(acc, dtype=float), axis=1)
     norm = norm[np.isfinite(norm)]
     if norm.size == 0:
         return float("nan")
@@ -30,7 +32,7 @@ def rest_magnitude(acc: np.ndarray) -> float:
     n = norm.size // WINDOW * WINDOW
     win = norm[:n].reshape(-1, WINDOW)
     mean = win.mean(axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         spread = win.std(axis=1) / mean
     if not np.isfinite(spread).any():  # every window reads zero: a dead accelerometer
         return float(np.median(norm))

@@ -582,3 +582,16 @@ def test_a_declination_against_a_magnetic_reference_is_refused(data_dir, capsys,
     assert main(["replay", str(path), *args]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "relative to magnetic north" in err[0]
+
+
+def test_absurd_accelerometer_samples_leak_no_numpy_warning():
+    """An accelerometer logged ×1e200 (a wrong unit) overflowed |acc| in the board check
+    with a RuntimeWarning on the output; such samples count as not finite."""
+    from replay.board import rest_magnitude
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isnan(rest_magnitude(np.full((100, 3), 1e200)))
+        big = np.full((100, 3), 1e150)
+        big[::2] *= 2.0
+        assert np.isfinite(rest_magnitude(big))

@@ -286,3 +286,19 @@ def test_a_declination_the_user_set_survives_the_vehicles_own():
     follows, kept = (est.params.declination for est in src.estimators)
     assert math.degrees(follows) == pytest.approx(12.0)
     assert math.degrees(kept) == pytest.approx(90.0)
+
+
+def test_an_imu_id_the_vehicle_does_not_have_is_told_once(caplog):
+    """`--imu-id 3` on a vehicle with IMU 0 only refused every sample (counted as
+    not_primary) and said nothing; now one warning names the ids it sends."""
+    from bridge.vehicle.vehicle import WRONG_IMU_SAMPLES, Vehicle
+
+    vehicle = Vehicle(1)
+    with caplog.at_level(logging.WARNING, logger="bridge.vehicle"):
+        for k in range(2 * WRONG_IMU_SAMPLES):
+            used, _ = vehicle.choose_source(SourceKey(1, 1, 27, k % 2), k * 0.004,
+                                            imu_id=3, preferred_msg=27, source_timeout_s=3.0)
+            assert not used
+    told = [r.getMessage() for r in caplog.records]
+    assert told == [f"vehicle 1: no IMU with id 3 (--imu-id) in {WRONG_IMU_SAMPLES} samples; "
+                    f"it sends id(s) 0, 1"]

@@ -26,6 +26,7 @@ is (autopilot, MAV_TYPE: the vehicle model), its velocity for aiding
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -41,11 +42,15 @@ from .ingest import SourceKey
 from .negotiate import StreamNegotiation
 from .references import References
 
+log = logging.getLogger(__name__)
+
 #: Per-vehicle sequence trackers (one per sending component) kept at most.
 MAX_COMPONENTS = 16
 CONFIGURED, HEARTBEAT, PROVISIONAL = "configured", "heartbeat", "imu"
 
 #: Counters of what one vehicle's traffic had refused.
+#: IMU samples of other ids, and none of the one --imu-id asks, before that is told.
+WRONG_IMU_SAMPLES = 500
 REFUSALS = ("not_primary", "other_component", "refs_refused", "components_untracked")
 
 
@@ -89,6 +94,8 @@ class Vehicle:
     mqtt_sent_t: dict[Any, float] = field(default_factory=dict)
     samples_at_last_status: int = 0
     refused: dict[str, int] = field(default_factory=lambda: dict.fromkeys(REFUSALS, 0))
+    imu_ids_seen: set[int] = field(default_factory=set)  # IMU ids refused for --imu-id
+    wrong_imu_told: bool = False
 
     def __post_init__(self) -> None:
         self.flight.label = f"vehicle {self.sysid}"
@@ -115,6 +122,19 @@ class Vehicle:
             return self.autopilot_compid
         return self.primary.compid if self.primary is not None else None
 
+    def _other_imu(self, imu: int, wanted: int) -> None:
+        """An IMU sample of another id than ``--imu-id`` asks: once many came and none of
+        the id asked, say which ids the vehicle sends (each refused sample is counted,
+        but a typo in the id would otherwise serve nothing without a word)."""
+        self.imu_ids_seen.add(imu)  # at most 256: the id is one byte
+        if self.primary is not None or self.wrong_imu_told:
+            return
+        if self.refused["not_primary"] >= WRONG_IMU_SAMPLES:
+            self.wrong_imu_told = True
+            log.warning("vehicle %d: no IMU with id %d (--imu-id) in %d samples; it sends "
+                        "id(s) %s", self.sysid, wanted, self.refused["not_primary"],
+                        ", ".join(map(str, sorted(self.imu_ids_seen))))
+
     def choose_source(self, key: SourceKey, now: float, imu_id: int | None,
                       preferred_msg: int, source_timeout_s: float) -> tuple[bool, bool]:
         """(use this sample, it starts a new primary) for an IMU sample of ``key``."""
@@ -123,6 +143,7 @@ class Vehicle:
             return False, False
         if imu_id is not None and key.imu != imu_id:
             self.refused["not_primary"] += 1
+            self._other_imu(key.imu, imu_id)
             return False, False
         primary = self.primary
         if primary == key:

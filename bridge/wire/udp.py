@@ -72,7 +72,9 @@ class UdpLink(Link):
             return False
         ok = self._filter.attach(self._sock, vehicles)
         if ok:
-            log.warning("%s: flood of refused datagrams; kernel filter on", self.name)
+            log.warning("%s: many datagrams from senders not served (another vehicle "
+                        "than --vehicle asks, or a flood): refused in the kernel from now "
+                        "on", self.name)
         return ok
 
     @property

@@ -7,10 +7,10 @@ import importlib.util
 import json
 import os
 import sys
-from collections.abc import Sequence
 from pathlib import Path
 
 from bridge.app.config_checks import check_output_file as check_writable_file
+from bridge.app.config_checks import check_outputs
 
 from .dataset import ReplayInputError
 
@@ -146,30 +146,6 @@ def check_output_file(path: Path | None, option: str) -> None:
     """Refuse an output path before any work: its folder must exist and be writable."""
     if path is not None:  # (a ValueError, which every command here reports in one line)
         check_writable_file(path, option)
-
-
-def _same_file_key(path: Path) -> str:
-    return os.path.normcase(os.path.realpath(path))
-
-
-def check_outputs(outputs: Sequence[tuple[Path | None, str]], logs: Sequence[Path]) -> None:
-    """Refuse, before any work, an output that cannot be written, that two options
-    share (the second would overwrite the first), or that is one of the logs read (it
-    would be overwritten with the results)."""
-    read = {_same_file_key(p): p for p in logs if p.is_file()}
-    taken: dict[str, str] = {}
-    for path, option in outputs:
-        if path is None:
-            continue
-        check_output_file(path, option)
-        key = _same_file_key(path)
-        if key in taken:
-            raise ReplayInputError(f"{option} {path}: also given to {taken[key]}; each "
-                                   f"output needs a file of its own")
-        if key in read:
-            raise ReplayInputError(f"{option} {path}: is one of the logs read "
-                                   f"({read[key]}); it would be overwritten")
-        taken[key] = option
 
 
 def check_output_dir(path: Path | None, option: str) -> None:

@@ -22,9 +22,10 @@ import sys
 import time
 from pathlib import Path
 
+from bridge.app.config_checks import check_outputs
 from estimators.spec import EstimatorSpec
 
-from .cli import INTERRUPTED, check_outputs, require_module
+from .cli import INTERRUPTED, require_module
 from .corpus_summary import CorpusSummary, summarise
 from .corpus_task import FAILED, ReplayOptions, absolute, crashed, replay_log
 from .dataset import ReplayInputError

@@ -13,8 +13,10 @@ design were chosen by someone who may have looked at the same logs.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -112,6 +114,17 @@ def choose(matrix: np.ndarray, columns: np.ndarray) -> int | None:
 
 
 def _content_digest(path: str) -> str | None:
+    """SHA-256 of the file, read once per version of it (tune checks the groups again
+    after leaving logs out, and cross_validate once more)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return _digest_of(os.path.realpath(path), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=4096)
+def _digest_of(path: str, mtime_ns: int, size: int) -> str | None:
     try:
         with open(path, "rb") as f:
             return hashlib.file_digest(f, "sha256").hexdigest()

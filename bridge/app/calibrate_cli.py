@@ -15,7 +15,6 @@ settings TOML).
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +24,8 @@ import numpy as np
 
 from imu.calibration import SensorCalibration
 from imu.calibration_fit import BLOCK_S, FitReport, fit_calibration, repair_samples
+
+from .config_checks import same_file_key
 
 if TYPE_CHECKING:
     from replay.dataset import Recording
@@ -163,7 +164,7 @@ def unique_logs(paths: list[Path]) -> tuple[list[Path], list[str]]:
     seen: dict[str, Path] = {}
     count: dict[str, int] = {}
     for p in paths:
-        key = os.path.normcase(os.path.realpath(p))
+        key = same_file_key(p)
         seen.setdefault(key, p)
         count[key] = count.get(key, 0) + 1
     notes = [f"note: {seen[k]} given {n} times; used once"
@@ -177,7 +178,7 @@ def check_args(args: argparse.Namespace) -> None:
     from replay.readers.tlog import IMU_MESSAGES
 
     from .config import check_rotation
-    from .config_checks import check_output_file
+    from .config_checks import check_outputs
 
     check_rotation(args.rotation)
     if args.no_gyro and args.no_accel and args.no_mag:
@@ -190,11 +191,7 @@ def check_args(args: argparse.Namespace) -> None:
         raise ValueError("give either LOG files or --emulator, not both")
     if not args.emulator and not args.logs:
         raise ValueError("no LOG files given (or use --emulator)")
-    out = os.path.realpath(args.output)
-    if any(os.path.realpath(p) == out for p in args.logs):
-        raise ValueError(f"{OUTPUT_OPTION} {args.output}: is one of the LOG files; it "
-                         "would be overwritten")
-    check_output_file(args.output, OUTPUT_OPTION)
+    check_outputs([(args.output, OUTPUT_OPTION)], args.logs, "the LOG files")
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -129,3 +130,29 @@ def parse_source(text: str) -> tuple[int, int]:
             and 1 <= int(sysid) <= 255 and 0 <= int(compid) <= 255):
         raise ValueError(f"bad source {text!r}; use SYSID:COMPID, e.g. 1:1")
     return int(sysid), int(compid)
+
+
+def same_file_key(path: str | Path) -> str:
+    """One key per file, whatever the spelling (relative, symlinked, case on Windows)."""
+    return os.path.normcase(os.path.realpath(path))
+
+
+def check_outputs(outputs: Sequence[tuple[str | Path | None, str]],
+                  inputs: Sequence[str | Path], inputs_are: str = "the logs read") -> None:
+    """ValueError, before any work, for an output (path, option) that cannot be written,
+    that two options share (the second would overwrite the first), or that is one of
+    the ``inputs`` (it would be overwritten with the results)."""
+    read = {same_file_key(p): p for p in inputs if Path(p).is_file()}
+    taken: dict[str, str] = {}
+    for path, option in outputs:
+        if path is None:
+            continue
+        check_output_file(path, option)
+        key = same_file_key(path)
+        if key in taken:
+            raise ValueError(f"{option} {path}: also given to {taken[key]}; each output "
+                             f"needs a file of its own")
+        if key in read:
+            raise ValueError(f"{option} {path}: is one of {inputs_are} ({read[key]}); it "
+                             f"would be overwritten")
+        taken[key] = option

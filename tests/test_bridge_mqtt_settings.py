@@ -26,6 +26,7 @@ from bridge.publish.mqtt import (
     MqttPublisher,
     MqttSettings,
     check_topic_prefix,
+    orphan_options,
 )
 
 OPENSSL = shutil.which("openssl")
@@ -145,6 +146,23 @@ def test_tls_files_without_tls_are_refused_not_ignored(capsys, pki):
     BridgeConfig(mqtt="mqtts://127.0.0.1", mqtt_ca=str(pki["cert"])).validate()
     BridgeConfig(mqtt="mqtt://127.0.0.1:8883", mqtt_tls=True, mqtt_ca=str(pki["cert"]),
                  mqtt_cert=str(pki["cert"]), mqtt_key=str(pki["key"])).validate()
+
+
+def test_mqtt_credentials_or_tls_without_mqtt_are_told_at_the_default_level(caplog, pki):
+    """Without --mqtt these options did nothing, and nothing said so: the bridge ran
+    without publishing. A warning, not a refusal (an environment file with the broker's
+    credentials is kept while MQTT is off)."""
+    caplog.set_level(logging.WARNING)
+    code = main(["run", "--connect", "udpin:127.0.0.1:0", "--estimator", "quaternion",
+                 "--duration", "0.3", "--mqtt-tls", "--mqtt-ca", str(pki["cert"]),
+                 "--mqtt-password", "s3cret"])
+    assert code == 0
+    told = [r.getMessage() for r in caplog.records if "without --mqtt" in r.getMessage()]
+    assert told == ["--mqtt-password, --mqtt-tls, --mqtt-ca given without --mqtt: ignored, "
+                    "nothing is published over MQTT"], told
+    assert all("s3cret" not in r.getMessage() for r in caplog.records)
+    assert orphan_options(BridgeConfig(mqtt="mqtt://127.0.0.1", mqtt_username="b")) == []
+    assert orphan_options(BridgeConfig(mqtt_rate=2.0, mqtt_prefix="drones")) == []
 
 
 # --- 9: TLS files that do not load ----------------------------------------------------

@@ -52,6 +52,9 @@ def bad_inputs(tmp: Path, busy: int) -> list[tuple[list[str], str]]:
         (["run", "--connect", "udpin:127.0.0.1:0", "--signing-key", ""],
          "an empty --signing-key"),
         (["run", "--signing-key", str(key_file)], "with the built-in emulator"),
+        # accepted silently: the user meant to sign and nothing was signed or checked
+        (["run", "--connect", "udpin:127.0.0.1:0", "--allow-unsigned"],
+         "--allow-unsigned without --signing-key"),
         (["run", "--config", str(tmp / "missing.toml")], "does not exist"),
         (["run", "--config", str(bad_toml)], f"{bad_toml} is not valid TOML"),
         (["run", "--config", str(typo)], "unknown setting 'conect'"),

@@ -210,6 +210,10 @@ class BridgeConfig:
                 raise ValueError("--signing-key with the built-in emulator: it does not "
                                  "sign, so every message would be refused (give "
                                  "--connect, or --allow-unsigned)")
+        if self.allow_unsigned and self.signing_key is None:
+            raise ValueError("--allow-unsigned without --signing-key: with no key nothing "
+                             "is signed or checked (give --signing-key, or drop "
+                             "--allow-unsigned)")
         if not 1 <= self.component_id <= 255 or not 1 <= self.system_id <= 255:
             raise ValueError("component_id and system_id must be in 1..255")
         if self.component_id == AUTOPILOT_COMPONENT_ID:

@@ -43,7 +43,7 @@ from imu.rotations import rotation_matrix
 
 from ..estimate.pipeline import Pipeline
 from ..publish.estimates import EstimatePublisher
-from ..publish.mqtt import MqttPublisher, MqttSettings
+from ..publish.mqtt import MqttPublisher, MqttSettings, orphan_options
 from ..publish.output import AttitudeOutput
 from ..publish.presence import MqttPresence
 from ..publish.record import TlogRecorder
@@ -113,6 +113,9 @@ class BridgeService:
                 key_file=cfg.mqtt_key, topic_prefix=cfg.mqtt_prefix))
             self.presence = MqttPresence(self.mqtt)
             estimates = EstimatePublisher(self.mqtt, self.pipeline, cfg.mqtt_rate)
+        elif orphans := orphan_options(cfg):
+            log.warning("%s given without --mqtt: ignored, nothing is published over MQTT",
+                        ", ".join(orphans))
         self.samples = SampleFlow(cfg, self.ingest, self.pipeline, self.output, estimates)
         self.registry = VehicleRegistry(cfg, self.admission, parse_forced(cfg.imu_message),
                                         self.samples.forget_source)

@@ -379,6 +379,20 @@ def check_mqtt_settings(cfg: Any) -> None:
     _check_resolves(settings.host, settings.port, redacted(cfg.mqtt))
 
 
+def orphan_options(cfg: Any) -> list[str]:
+    """MQTT credentials and TLS options given without ``--mqtt``: they do nothing, and
+    the user who gave them probably expects MQTT (a forgotten or unset ``--mqtt``). Told
+    as a warning, not refused: an environment file with the broker's credentials is
+    often kept while MQTT is switched off. The rate and prefix have defaults and are
+    not looked at."""
+    if cfg.mqtt is not None:
+        return []
+    return [option for option, value in (
+        ("--mqtt-username", cfg.mqtt_username), ("--mqtt-password", cfg.mqtt_password),
+        ("--mqtt-tls", cfg.mqtt_tls or None), ("--mqtt-ca", cfg.mqtt_ca),
+        ("--mqtt-cert", cfg.mqtt_cert), ("--mqtt-key", cfg.mqtt_key)) if value is not None]
+
+
 def _check_tls_files(ca: str | None, cert: str | None, key: str | None) -> None:
     """ValueError naming the CA, certificate or key file that does not load."""
     if key is not None and cert is None:

@@ -26,4 +26,4 @@ if [ ${#missing[@]} -gt 0 ]; then
     fi
 fi
 python -m pip install -q --upgrade pip
-bash docker/setup.sh -e . "test,report,cluster"
+bash docker/setup.sh -e . "test,report,cluster,compare"

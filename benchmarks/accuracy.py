@@ -69,6 +69,7 @@ from estimators import quat as Q
 from estimators.base import G
 from estimators.eskf import MULTIROTOR_DRAG_PER_S
 from estimators.metrics import ErrorRms, attitude_errors, rms_errors
+from replay.references import reference_attitudes
 
 DATA = Path(os.environ.get("ATTITUDE_BRIDGE_DATA",
                            Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -300,48 +301,19 @@ def eskf_score(trial: Trial, params: dict[str, float], tuned_only: bool = False
             for r in trial.runs if not tuned_only or r.label in TUNED_RUNS}
 
 
-def _true_north(q_enu: np.ndarray, trial: Trial) -> np.ndarray:
-    """A reference filter's magnetic-north ENU quaternion in the trial's world frame,
-    turned to true north by the trial's declination (0 for BROAD, whose truth is
-    magnetic)."""
-    if trial.world == "ENU":
-        return q_enu
-    q = Q.ned_to_enu(q_enu)  # the NED <-> ENU swap is its own inverse
-    return Q.multiply(Q.from_axis_angle(np.array([0.0, 0.0, 1.0]), trial.declination), q)
+def _references(trial: Trial, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The reference filters (``replay --compare``'s code) on the trial, by label."""
+    runs = reference_attitudes(trial.gyr, trial.acc, trial.mag, trial.rate_hz, trial.world,
+                               trial.declination, names)
+    return {run.label: run.q for run in runs}
 
 
 def vqf_rows(trial: Trial) -> dict[str, np.ndarray]:
-    import vqf
-
-    ts = 1.0 / trial.rate_hz
-    mag = np.ascontiguousarray(np.nan_to_num(trial.mag)) if trial.mag is not None else None
-    gyr, acc = np.ascontiguousarray(trial.gyr), np.ascontiguousarray(trial.acc)
-    return {"vqf online": _true_north(vqf.VQF(ts).updateBatch(gyr, acc, mag)["quat9D"], trial),
-            "vqf offline": _true_north(vqf.offlineVQF(gyr, acc, mag, ts)["quat9D"], trial)}
+    return _references(trial, ("vqf", "vqf-offline"))
 
 
 def imufusion_row(trial: Trial) -> np.ndarray:
-    import imufusion
-
-    ahrs = imufusion.Ahrs()
-    settings = imufusion.AhrsSettings()
-    # imufusion 1.3 ignores AhrsSettings(convention=...) given to the constructor.
-    ned = trial.world == "NED"
-    settings.convention = imufusion.CONVENTION_NED if ned else imufusion.CONVENTION_ENU
-    settings.sample_rate = trial.rate_hz
-    ahrs.set_settings(settings)
-    g, a = np.degrees(trial.gyr), trial.acc / 9.80665
-    mag = trial.mag if trial.mag is not None else None
-    out = np.empty((len(g), 4))
-    for i in range(len(g)):
-        if mag is not None and np.all(np.isfinite(mag[i])):
-            ahrs.update(g[i], a[i], mag[i])
-        else:
-            ahrs.update_no_magnetometer(g[i], a[i])
-        out[i] = ahrs.get_quaternion()
-    if not ned:
-        return out
-    return Q.multiply(Q.from_axis_angle(np.array([0.0, 0.0, 1.0]), trial.declination), out)
+    return _references(trial, ("imufusion",))["imufusion"]
 
 
 # --- tables --------------------------------------------------------------------------------

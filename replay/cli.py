@@ -39,6 +39,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "back: the best attitude the log allows); without a truth in the "
                         "log, every estimator and the autopilot are also scored against it "
                         "(labelled: it is not truth)")
+    p.add_argument("--compare", action="append", default=[], metavar="NAME[,NAME...]",
+                   help="also run other people's filters on the same samples and score "
+                        "them the same way: vqf (online), vqf-offline (sees the whole "
+                        "log), imufusion (needs the 'compare' extra)")
     p.add_argument("--report", type=Path, metavar="OUT.html",
                    help="write a self-contained interactive HTML report (needs the "
                         "'report' extra: bokeh); a corpus: the summary's tables and a "
@@ -165,6 +169,15 @@ def require_module(module: str, option: str) -> None:
         raise ReplayInputError(f"{option} needs {module}: pip install 'attitude-bridge[report]'")
 
 
+def compared_references(args: argparse.Namespace) -> tuple[str, ...]:
+    """``--compare``'s reference filters, checked (names, packages) before any work."""
+    from .references import check_available, parse_compare
+
+    names = parse_compare(args.compare)
+    check_available(names)
+    return names
+
+
 def _replay(args: argparse.Namespace) -> int:
     from estimators.spec import EstimatorSpec
 
@@ -185,11 +198,12 @@ def _replay(args: argparse.Namespace) -> int:
         if args.png:
             require_module("matplotlib", "--png")
         specs = [EstimatorSpec.parse(s) for s in args.estimator] or None
+        compare = compared_references(args)
         rec = _load(args.file, args)
         if args.init == "reference" and rec.reference is None:
             raise ReplayInputError(f"{args.file}: --init reference needs a reference attitude")
         ev = evaluate(rec, specs, init=args.init, declination_deg=args.declination_deg,
-                      aid=args.aid or "auto", smooth=args.smooth)
+                      aid=args.aid or "auto", smooth=args.smooth, compare=compare)
     except (ReplayInputError, ValueError) as exc:
         return _fail("replay", exc)
     from .summary import print_summary

@@ -32,6 +32,7 @@ from .dataset import ReplayInputError
 from .logpaths import expand
 from .parallel import run
 from .progress import Progress
+from .references import reference_labels
 
 #: option -> why it does not apply to several logs
 SINGLE_FILE_ONLY = {"png": "--png writes one replay's figures"}
@@ -69,8 +70,11 @@ def options_from(args: argparse.Namespace) -> ReplayOptions:
     specs = [EstimatorSpec.parse(s) for s in args.estimator] or default_specs()
     for spec in specs:  # unknown names and parameters fail here
         estimators.estimator_class(spec.name).make_params(**spec.params)
+    from .cli import compared_references
+
     return ReplayOptions(tuple(specs), args.board, args.imu, args.reference, args.init,
-                         args.declination_deg, args.aid or "auto", args.smooth)
+                         args.declination_deg, args.aid or "auto", args.smooth,
+                         compared_references(args))
 
 
 def _warm(options: ReplayOptions) -> None:
@@ -118,7 +122,7 @@ def replay_corpus(args: argparse.Namespace) -> int:
     if outcome.interrupted and bar is not None:
         bar.interrupt()
     summary = summarise([r for r in outcome.results if r is not None],
-                        [s.label for s in options.specs])
+                        [s.label for s in options.specs] + reference_labels(options.compare))
     for line in summary.lines():
         print(line)
     if outcome.interrupted:

@@ -43,6 +43,7 @@ class ReplayOptions:
     declination_deg: float | None = None
     aid: str = "auto"
     smooth: bool = False  # also the eskf smoothed over each log (replay --smooth)
+    compare: tuple[str, ...] = ()  # reference filters beside ours (replay --compare)
 
 
 def failure_reason(exc: BaseException) -> str:
@@ -91,7 +92,8 @@ def replay_log(display: str, load_path: str, options: ReplayOptions) -> dict:
                                        f"attitude")
             ev = evaluate(rec, list(options.specs) if options.specs else None,
                           init=options.init, declination_deg=options.declination_deg,
-                          aid=options.aid, smooth=options.smooth)
+                          aid=options.aid, smooth=options.smooth,
+                          compare=options.compare)
     except Exception as exc:  # one bad log must not stop the batch
         entry["reason"] = failure_reason(exc).replace(load_path, display)
         return entry

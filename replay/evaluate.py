@@ -23,6 +23,7 @@ from .align import DEFAULT_MAX_GAP_S, measure_lag, reference_at
 from .dataset import Recording, ReplayInputError
 from .declination import Declination, check_against_reference, resolve
 from .flight import PHASES, FlightTrack, track
+from .references import ReferenceRun, reference_runs
 
 #: Gyro-only integrators: left out of the default comparison (they only drift), still
 #: available by name with --estimator.
@@ -389,6 +390,9 @@ class Evaluation:
     #: attitude against the smoothed eskf (not truth: labelled so wherever shown)
     vs_smoothed: dict[str, Score] = field(default_factory=dict)
     smoothed_label: str = ""  # the smoothed run's label ("" without --smooth)
+    #: with --compare: what each reference filter's run needed done to the samples
+    #: (label -> one line; only those that needed something)
+    compare_notes: dict[str, str] = field(default_factory=dict)
 
     @property
     def recording(self) -> Recording:
@@ -447,13 +451,18 @@ class Evaluation:
 def evaluate(rec: Recording, specs: list[EstimatorSpec | str] | None = None,
              init: str = "sensors", method: str = "slerp",
              declination_deg: float | None = None, aid: str = "auto",
-             min_rate_hz: float = MIN_RATE_HZ, smooth: bool = False) -> Evaluation:
+             min_rate_hz: float = MIN_RATE_HZ, smooth: bool = False,
+             compare: tuple[str, ...] = ()) -> Evaluation:
     """Run and score every estimator (default: :func:`default_specs`), and the
     autopilot's own attitude when the reference is another (the truth).
 
     ``smooth``: also the first eskf of ``specs`` (or the default eskf) smoothed over the
     whole recording (:mod:`replay.smoothing`); without a truth, everything is also
     scored against it (:attr:`Evaluation.vs_smoothed`).
+
+    ``compare``: reference filters by other people (:mod:`replay.references`: ``vqf``,
+    ``vqf-offline``, ``imufusion``) run on the same samples and scored the same way,
+    as rows of their own.
 
     Below ``min_rate_hz`` nothing is run (:attr:`Evaluation.not_run` says why): numbers
     from a gyro sampled a few times a second would describe the sampling, not a filter.
@@ -469,7 +478,14 @@ def evaluate(rec: Recording, specs: list[EstimatorSpec | str] | None = None,
     if rec.rate_hz < min_rate_hz:
         return Evaluation(prep, {}, {}, f"IMU at {rec.rate_hz:.1f} Hz is too slow to estimate "
                                         f"attitude from (needs >= {min_rate_hz:g} Hz)")
-    from .smoothing import AUTOPILOT, SMOOTHED, against_smoothed, autopilot_run, smoothed_run
+    from .smoothing import (
+        AUTOPILOT,
+        SMOOTHED,
+        against_smoothed,
+        against_smoothed_extra,
+        autopilot_run,
+        smoothed_run,
+    )
 
     runs = {s.label: run_estimator(prep, s, init) for s in chosen}
     smoothed_label = ""
@@ -481,8 +497,22 @@ def evaluate(rec: Recording, specs: list[EstimatorSpec | str] | None = None,
     own = autopilot_run(prep)
     if own is not None:
         scores[AUTOPILOT] = score(prep, own, six_d=False)
+    references = {ref.label: ref for ref in reference_runs(rec, prep.declination.rad, compare)}
+    for label, ref in references.items():
+        scores[label] = score(prep, _reference_as_run(ref), six_d=ref.six_d)
     vs_smoothed = {}
     if smooth and (rec.reference is None or rec.reference.kind != "truth"):
         vs_smoothed = against_smoothed(prep, runs, runs[smoothed_label])
+        vs_smoothed.update(against_smoothed_extra(prep, runs[smoothed_label], {
+            label: (_reference_as_run(ref), ref.six_d) for label, ref in references.items()}))
     return Evaluation(prep, runs, scores, vs_smoothed=vs_smoothed,
-                      smoothed_label=smoothed_label)
+                      smoothed_label=smoothed_label,
+                      compare_notes={label: ref.note for label, ref in references.items()
+                                     if ref.note})
+
+
+def _reference_as_run(ref: ReferenceRun) -> Run:
+    """A reference filter's attitude in the shape :func:`score` takes."""
+    n = len(ref.q)
+    return Run(EstimatorSpec(ref.label), ref.q, np.zeros(n, dtype=np.uint8),
+               np.full((n, 3), np.nan), estimators.SampleCounters(), ref.seconds)

@@ -69,10 +69,7 @@ def autopilot_run(prep: Prepared) -> Run | None:
 def against_smoothed(prep: Prepared, runs: dict[str, Run], smoothed: Run
                      ) -> dict[str, Score]:
     """Every other run and the autopilot's attitude scored against the smoothed one."""
-    ok = np.all(np.isfinite(smoothed.q), axis=1)
-    if prep.recording.score_mask is not None:
-        ok &= prep.recording.score_mask
-    base = dataclasses.replace(prep, q_ref=smoothed.q, scored=ok, unscored="")
+    base = _smoothed_base(prep, smoothed)
     out = {label: score(base, run) for label, run in runs.items() if run is not smoothed}
     own = autopilot_attitude(prep)
     if own is not None:
@@ -80,3 +77,19 @@ def against_smoothed(prep: Prepared, runs: dict[str, Run], smoothed: Run
                   np.full((len(own), 3), np.nan), estimators.SampleCounters(), 0.0)
         out[AUTOPILOT] = score(base, run, six_d=False)
     return out
+
+
+def against_smoothed_extra(prep: Prepared, smoothed: Run,
+                           others: dict[str, tuple[Run, bool]]) -> dict[str, Score]:
+    """Attitudes that are no estimator of ours (``replay --compare``'s reference
+    filters), each given with its ``six_d``, scored against the smoothed run."""
+    base = _smoothed_base(prep, smoothed)
+    return {label: score(base, run, six_d=six_d) for label, (run, six_d) in others.items()}
+
+
+def _smoothed_base(prep: Prepared, smoothed: Run) -> Prepared:
+    """``prep`` with the smoothed attitude as its reference, scored where it exists."""
+    ok = np.all(np.isfinite(smoothed.q), axis=1)
+    if prep.recording.score_mask is not None:
+        ok &= prep.recording.score_mask
+    return dataclasses.replace(prep, q_ref=smoothed.q, scored=ok, unscored="")

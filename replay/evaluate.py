@@ -393,6 +393,8 @@ class Evaluation:
     #: with --compare: what each reference filter's run needed done to the samples
     #: (label -> one line; only those that needed something)
     compare_notes: dict[str, str] = field(default_factory=dict)
+    #: with --compare: each reference filter's attitude (label -> (N, 4))
+    compared: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def recording(self) -> Recording:
@@ -508,7 +510,8 @@ def evaluate(rec: Recording, specs: list[EstimatorSpec | str] | None = None,
     return Evaluation(prep, runs, scores, vs_smoothed=vs_smoothed,
                       smoothed_label=smoothed_label,
                       compare_notes={label: ref.note for label, ref in references.items()
-                                     if ref.note})
+                                     if ref.note},
+                      compared={label: ref.q for label, ref in references.items()})
 
 
 def _reference_as_run(ref: ReferenceRun) -> Run:

@@ -61,6 +61,21 @@ def test_every_reference_on_a_px4_flight_in_true_north_ned(data_dir, tmp_path, c
     assert scores["eskf"]["total_deg"] < scores["vqf online"]["total_deg"]
 
 
+def test_the_csv_carries_each_reference_beside_the_estimators(data_dir, tmp_path, capsys):
+    out = tmp_path / "series.csv"
+    doc = replay_json(capsys, tmp_path, str(data_dir / BROAD_01), "-e", "eskf",
+                      "--compare", "vqf", "--csv", str(out))
+    header = out.read_text().splitlines()[0].split(",")
+    assert "vqf online.qw" in header and "vqf online.err_total_deg" in header
+    table = np.genfromtxt(out, delimiter=",", skip_header=1)
+    err = table[:, header.index("vqf online.err_total_deg")]
+    with np.load(data_dir / BROAD_01) as d:
+        movement = np.asarray(d["movement"], bool)
+    scored = movement & np.isfinite(err)
+    rms = float(np.sqrt(np.mean(err[scored] ** 2)))
+    assert rms == pytest.approx(doc["estimators"]["vqf online"]["total_deg"], rel=1e-6)
+
+
 def test_bad_names_and_a_missing_package_are_one_line_before_any_work(
         data_dir, capsys, monkeypatch):
     path = str(data_dir / BROAD_01)

@@ -198,6 +198,19 @@ def armed_span_scores(record: Path, sysid: int, label: str
     return ours, theirs
 
 
+def replayed_beside_vqf(record: Path, label: str) -> dict:
+    """The recorded session replayed (``attitude-bridge replay --compare vqf,vqf-offline``:
+    eskf with the defaults, the autopilot's own attitude, VQF online and offline, on the
+    same samples against the same truth, every phase), scores by label, printed."""
+    from replay.evaluate import evaluate
+    from replay.readers import load
+
+    ev = evaluate(load(record, reference="truth"), ["eskf"], compare=("vqf", "vqf-offline"))
+    print(f"{label} session replayed: " + ", ".join(
+        f"{name} {s.total_deg:.2f} / {s.inclination_deg:.2f}" for name, s in ev.scores.items()))
+    return ev.scores
+
+
 def read_param(link: Link, name: str, tries: int = 5) -> float | None:
     """The autopilot's current value of a parameter, asked on ``link`` (PARAM_REQUEST_READ,
     answered by PARAM_VALUE)."""

@@ -17,6 +17,7 @@ from sitl_support import (
     armed_span_scores,
     check_flight_state_and_references,
     landed_and_disarmed,
+    replayed_beside_vqf,
     stop_all,
 )
 
@@ -85,3 +86,10 @@ def test_arducopter_flight_through_the_bridge(tmp_path):
     assert ours.inclination_deg <= theirs.inclination_deg
     assert ours.total_deg <= 0.70  # README: 0.46-0.47°
     assert ours.inclination_deg <= 0.31  # README: 0.21°
+    # the same samples replayed beside VQF (online, and offline: it sees the whole
+    # flight): eskf with the defaults better in total and in inclination
+    replayed = replayed_beside_vqf(bridge.record, "ArduPilot")
+    for ref in ("vqf online", "vqf offline"):
+        assert replayed["eskf"].total_deg < replayed[ref].total_deg, (ref, replayed)
+        assert replayed["eskf"].inclination_deg < replayed[ref].inclination_deg, (ref,
+                                                                                   replayed)

@@ -22,6 +22,7 @@ from sitl_support import (
     check_flight_state_and_references,
     landed_and_disarmed,
     read_param,
+    replayed_beside_vqf,
     stop_all,
 )
 
@@ -98,4 +99,11 @@ def test_px4_flight_through_the_bridge(tmp_path):
     # simulated magnetometer says in that run (README: 1.03-2.88°, PX4's own
     # 1.78-3.88°); the bound above holds it against PX4's in the same flight
     assert ours.inclination_deg <= 1.2  # README: 0.60-0.87° (every live flight 0.60-1.01°)
+    # the same samples replayed beside VQF (online, and offline: it sees the whole
+    # flight): eskf with the defaults better in total and in inclination
+    replayed = replayed_beside_vqf(bridge.record, "PX4")
+    for ref in ("vqf online", "vqf offline"):
+        assert replayed["eskf"].total_deg < replayed[ref].total_deg, (ref, replayed)
+        assert replayed["eskf"].inclination_deg < replayed[ref].inclination_deg, (ref,
+                                                                                   replayed)
 

@@ -25,7 +25,7 @@ from pathlib import Path
 from bridge.app.config_checks import check_outputs
 from estimators.spec import EstimatorSpec
 
-from .cli import INTERRUPTED, require_module
+from .cli import INTERRUPTED, compared_references, require_module
 from .corpus_summary import CorpusSummary, summarise
 from .corpus_task import FAILED, ReplayOptions, absolute, crashed, replay_log
 from .dataset import ReplayInputError
@@ -70,8 +70,6 @@ def options_from(args: argparse.Namespace) -> ReplayOptions:
     specs = [EstimatorSpec.parse(s) for s in args.estimator] or default_specs()
     for spec in specs:  # unknown names and parameters fail here
         estimators.estimator_class(spec.name).make_params(**spec.params)
-    from .cli import compared_references
-
     return ReplayOptions(tuple(specs), args.board, args.imu, args.reference, args.init,
                          args.declination_deg, args.aid or "auto", args.smooth,
                          compared_references(args))

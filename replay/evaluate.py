@@ -390,11 +390,9 @@ class Evaluation:
     #: attitude against the smoothed eskf (not truth: labelled so wherever shown)
     vs_smoothed: dict[str, Score] = field(default_factory=dict)
     smoothed_label: str = ""  # the smoothed run's label ("" without --smooth)
-    #: with --compare: what each reference filter's run needed done to the samples
-    #: (label -> one line; only those that needed something)
-    compare_notes: dict[str, str] = field(default_factory=dict)
-    #: with --compare: each reference filter's attitude (label -> (N, 4))
-    compared: dict[str, np.ndarray] = field(default_factory=dict)
+    #: with --compare: each reference filter's run (its attitude, and what its samples
+    #: needed), by label
+    references: dict[str, ReferenceRun] = field(default_factory=dict)
 
     @property
     def recording(self) -> Recording:
@@ -508,10 +506,7 @@ def evaluate(rec: Recording, specs: list[EstimatorSpec | str] | None = None,
         vs_smoothed.update(against_smoothed_extra(prep, runs[smoothed_label], {
             label: (_reference_as_run(ref), ref.six_d) for label, ref in references.items()}))
     return Evaluation(prep, runs, scores, vs_smoothed=vs_smoothed,
-                      smoothed_label=smoothed_label,
-                      compare_notes={label: ref.note for label, ref in references.items()
-                                     if ref.note},
-                      compared={label: ref.q for label, ref in references.items()})
+                      smoothed_label=smoothed_label, references=references)
 
 
 def _reference_as_run(ref: ReferenceRun) -> Run:

@@ -45,7 +45,8 @@ def header_lines(ev: Evaluation) -> list[str]:
     lines += [f"  note: {n}" for n in rec.notes]
     if rec.cleanup.dropped:
         lines.append(f"  note: dropped IMU samples: {rec.cleanup}")
-    lines += [f"  note: {label}: {note}" for label, note in ev.compare_notes.items()]
+    lines += [f"  note: {label}: {ref.note}" for label, ref in ev.references.items()
+              if ref.note]
     lines += [f"  warning: {w}" for w in rec.warnings]
     return lines
 

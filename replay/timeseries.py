@@ -44,8 +44,8 @@ def columns(ev: Evaluation) -> tuple[list[str], np.ndarray]:
         flags = run.flags.astype(int)
         parts.append(np.column_stack([(flags & _core.F_ACC_REJECTED) != 0,
                                       (flags & _core.F_MAG_REJECTED) != 0, flags]))
-    for label, q in ev.compared.items():  # --compare's reference filters: no flags
-        _attitude_columns(label, q, q_ref, names, parts)
+    for label, ref in ev.references.items():  # --compare's reference filters: no flags
+        _attitude_columns(label, ref.q, q_ref, names, parts)
     return names, np.hstack([np.asarray(p, dtype=float) for p in parts])
 
 

@@ -92,12 +92,12 @@ def test_px4_flight_through_the_bridge(tmp_path):
     ours, theirs = armed_span_scores(bridge.record, sysid, "PX4")
     assert ours.total_deg <= TOTAL_VS_PX4 * theirs.total_deg
     # inclination alone: comparable, not always better (README, "With a real autopilot":
-    # 0.89-1.04x of PX4's own over 8 flights with the current defaults, 1.07x with
+    # 0.89-1.04x of PX4's own over 11 flights with the current defaults, 1.07x with
     # earlier ones and the whole suite running beside it, docs/accuracy.md "Live flights")
     assert ours.inclination_deg <= INCLINATION_VS_AUTOPILOT * theirs.inclination_deg
     # no absolute bound on the total: it is mostly heading, which follows what SIH's
-    # simulated magnetometer says in that run (README: 1.03-2.88°, PX4's own
-    # 1.78-3.88°); the bound above holds it against PX4's in the same flight
+    # simulated magnetometer says in that run (README: 0.89-2.88°, PX4's own
+    # 1.75-3.88°); the bound above holds it against PX4's in the same flight
     assert ours.inclination_deg <= 1.2  # README: 0.60-0.87° (every live flight 0.60-1.01°)
     # the same samples replayed beside VQF (online, and offline: it sees the whole
     # flight): eskf with the defaults better in total and in inclination
@@ -106,4 +106,7 @@ def test_px4_flight_through_the_bridge(tmp_path):
         assert replayed["eskf"].total_deg < replayed[ref].total_deg, (ref, replayed)
         assert replayed["eskf"].inclination_deg < replayed[ref].inclination_deg, (ref,
                                                                                    replayed)
+    # README: 0.73-0.79° in three runs (the total follows SIH's magnetometer, as above: held
+    # below VQF's, not absolutely)
+    assert replayed["eskf"].inclination_deg <= 1.1
 

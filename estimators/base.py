@@ -54,12 +54,13 @@ def param(default: float | bool | str, doc: str) -> Any:
 
 #: Unit (the doc's first bracket) -> (suffix of its degree alias, unit in degrees).
 DEGREE_UNITS = {"rad": ("_deg", "deg"), "rad/s": ("_dps", "deg/s")}
-_UNIT = re.compile(r"\[([^\]]*)\]")
+#: The first bracket of a parameter doc: its unit.
+DOC_UNIT = re.compile(r"\[([^\]]*)\]")
 
 
 def doc_unit(f: dataclasses.Field) -> str | None:
     """The unit a parameter's doc gives first (``[rad/s]`` -> ``rad/s``), if any."""
-    unit = _UNIT.search(f.metadata.get("doc", ""))
+    unit = DOC_UNIT.search(f.metadata.get("doc", ""))
     return None if unit is None else unit.group(1).strip()
 
 

@@ -12,17 +12,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .base import DEGREE_UNITS, Estimator, doc_unit
+from .base import DEGREE_UNITS, DOC_UNIT, Estimator, doc_unit
 from .registry import estimator_class
 
 ParamValue = float | bool | str
 
-_UNIT = re.compile(r"\[([^\]]*)\]")
 
 
 def angle_params(est_cls: type[Estimator]) -> dict[str, str]:
@@ -55,7 +53,7 @@ def user_param_docs(est_cls: type[Estimator]) -> dict[str, str]:
         bounds = est_cls.Params.BOUNDS.get(f.name)
         if f.name in aliases:
             unit = DEGREE_UNITS[doc_unit(f) or ""][1]
-            doc = _UNIT.sub(f"[{unit}]", doc, count=1)
+            doc = DOC_UNIT.sub(f"[{unit}]", doc, count=1)
             shown = f"{math.degrees(f.default):.6g}"
             if bounds is not None:
                 shown += f" ({math.degrees(bounds[0]):.6g}..{math.degrees(bounds[1]):.6g})"

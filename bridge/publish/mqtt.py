@@ -367,9 +367,7 @@ def check_mqtt_settings(cfg: Any) -> None:
             key_file=cfg.mqtt_key)
     except ValueError as exc:
         raise ValueError(f"--mqtt: {exc}") from None
-    files = [(option, path) for option, path in (
-        ("--mqtt-ca", cfg.mqtt_ca), ("--mqtt-cert", cfg.mqtt_cert), ("--mqtt-key", cfg.mqtt_key))
-        if path is not None]
+    files = [(option, path) for option, path in _tls_files(cfg) if path is not None]
     if files and not settings.tls:
         option, path = files[0]
         raise ValueError(f"{option} {path} given but --mqtt {redacted(cfg.mqtt)} is plaintext "
@@ -389,8 +387,13 @@ def orphan_options(cfg: Any) -> list[str]:
         return []
     return [option for option, value in (
         ("--mqtt-username", cfg.mqtt_username), ("--mqtt-password", cfg.mqtt_password),
-        ("--mqtt-tls", cfg.mqtt_tls or None), ("--mqtt-ca", cfg.mqtt_ca),
-        ("--mqtt-cert", cfg.mqtt_cert), ("--mqtt-key", cfg.mqtt_key)) if value is not None]
+        ("--mqtt-tls", cfg.mqtt_tls or None), *_tls_files(cfg)) if value is not None]
+
+
+def _tls_files(cfg: Any) -> tuple[tuple[str, str | None], ...]:
+    """(option, path) of the CA, client certificate and key settings."""
+    return (("--mqtt-ca", cfg.mqtt_ca), ("--mqtt-cert", cfg.mqtt_cert),
+            ("--mqtt-key", cfg.mqtt_key))
 
 
 def _check_tls_files(ca: str | None, cert: str | None, key: str | None) -> None:

@@ -210,7 +210,6 @@ def _keepalive(sock: socket.socket | None, idle_s: float) -> None:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPCNT, 3)
 
 
-
 def _is_terminal(device: str) -> bool:
     """Whether ``device`` is a terminal (a serial port is one; /dev/zero, /dev/null and
     files are not, and pyserial would fail on them for ever with 'Inappropriate ioctl').
@@ -224,6 +223,7 @@ def _is_terminal(device: str) -> bool:
         return os.isatty(fd)
     finally:
         os.close(fd)
+
 
 class SerialLink(_StreamLink):
     """A serial port via pyserial in non-blocking mode, read through ``add_reader``."""

@@ -199,13 +199,15 @@ def armed_span_scores(record: Path, sysid: int, label: str
 
 
 def replayed_beside_vqf(record: Path, label: str) -> dict:
-    """The recorded session replayed (``attitude-bridge replay --compare vqf,vqf-offline``:
-    eskf with the defaults, the autopilot's own attitude, VQF online and offline, on the
-    same samples against the same truth, every phase), scores by label, printed."""
+    """The recorded session replayed (``attitude-bridge replay --smooth --compare
+    vqf,vqf-offline``: eskf with the defaults online and smoothed, the autopilot's own
+    attitude, VQF online and offline, on the same samples against the same truth, every
+    phase), scores by label, printed."""
     from replay.evaluate import evaluate
     from replay.readers import load
 
-    ev = evaluate(load(record, reference="truth"), ["eskf"], compare=("vqf", "vqf-offline"))
+    ev = evaluate(load(record, reference="truth"), ["eskf"], smooth=True,
+                  compare=("vqf", "vqf-offline"))
     print(f"{label} session replayed: " + ", ".join(
         f"{name} {s.total_deg:.2f} / {s.inclination_deg:.2f}" for name, s in ev.scores.items()))
     return ev.scores

@@ -86,12 +86,17 @@ def test_arducopter_flight_through_the_bridge(tmp_path):
     assert ours.inclination_deg <= theirs.inclination_deg
     assert ours.total_deg <= 0.70  # README: 0.46-0.47°
     assert ours.inclination_deg <= 0.31  # README: 0.21°
-    # the same samples replayed beside VQF (online, and offline: it sees the whole
-    # flight): eskf with the defaults better in total and in inclination
+    # the same samples replayed beside VQF: eskf online better than VQF online in total
+    # and inclination, and than VQF offline in inclination; offline against offline, the
+    # eskf smoothed better than VQF offline in both (online, the heading of a filter that
+    # sees the whole flight can be better than ours: 2.15 against 2.31° once in four)
     replayed = replayed_beside_vqf(bridge.record, "ArduPilot")
-    for ref in ("vqf online", "vqf offline"):
-        assert replayed["eskf"].total_deg < replayed[ref].total_deg, (ref, replayed)
-        assert replayed["eskf"].inclination_deg < replayed[ref].inclination_deg, (ref,
-                                                                                   replayed)
-    # README: 1.27 / 0.14° in three runs
+    online, smoothed = replayed["eskf"], replayed["eskf smoothed"]
+    vqf_online, vqf_offline = replayed["vqf online"], replayed["vqf offline"]
+    assert online.total_deg < vqf_online.total_deg, replayed
+    assert online.inclination_deg < vqf_online.inclination_deg, replayed
+    assert online.inclination_deg < vqf_offline.inclination_deg, replayed
+    assert smoothed.total_deg < vqf_offline.total_deg, replayed
+    assert smoothed.inclination_deg < vqf_offline.inclination_deg, replayed
+    # README: 1.27 / 0.14° in four runs
     assert replayed["eskf"].total_deg <= 1.9 and replayed["eskf"].inclination_deg <= 0.21

@@ -295,30 +295,30 @@ class ArrivalClock:
     """Board time for a message that carries none (ArduPilot's SIMSTATE) or a zero one
     (PX4 SIH's HIL_STATE_QUATERNION), from when it arrived.
 
-    Every sample of the vehicle's IMU stream pairs a board time with an arrival time;
-    ``board - arrival`` is the clock offset minus that sample's transport delay, so the
-    largest value over the last ``window_s`` is the offset of the least delayed sample,
-    and a message sent along the same link maps to about the board time it was sent at.
-    The window lets the offset follow a drifting clock and a new timeline (a reboot)."""
+    The board time of the newest IMU sample read before it, plus the wall time since
+    that sample was read: a message sent along the same link, in sequence with the IMU
+    stream, is placed where the stream says it was sent, as the replay places it (the
+    board time of the IMU message before it). Nothing here assumes the board clock runs
+    at the wall clock's rate: a simulator behind its real-time schedule (PX4 SIH on a
+    loaded machine ran at 0.988× here) would otherwise place every truth sample tens of
+    milliseconds late, several degrees in a fast turn. A backlog read at once is placed
+    by its order too, not by when the bridge got round to reading it."""
 
-    def __init__(self, window_s: float = 2.0) -> None:
-        self.window_s = window_s
-        self._offsets: deque[tuple[float, float]] = deque()  # (arrival, offset), max first
+    def __init__(self) -> None:
+        self._board: float | None = None  # newest IMU sample's board time [s]
+        self._arrival = 0.0  # when it was read
 
     def observe(self, board_t: float, arrival: float) -> None:
-        offset = board_t - arrival
-        q = self._offsets
-        while q and q[-1][1] <= offset:
-            q.pop()  # never again the maximum: a later sample has a larger offset
-        q.append((arrival, offset))
-        while q[0][0] < arrival - self.window_s:
-            q.popleft()
+        """An IMU sample; an older one (a second stream's) does not move the clock back."""
+        if self._board is None or board_t >= self._board:
+            self._board, self._arrival = board_t, arrival
 
     def reset(self) -> None:
-        self._offsets.clear()
+        """A new timeline (a reboot, a gap): forget the last sample."""
+        self._board = None
 
     def board_time(self, arrival: float) -> float | None:
-        """Board time of a message that arrived at ``arrival`` (None before any sample)."""
-        if not self._offsets:
+        """Board time of a message read at ``arrival`` (None before any sample)."""
+        if self._board is None:
             return None
-        return arrival + self._offsets[0][1]
+        return self._board + max(arrival - self._arrival, 0.0)

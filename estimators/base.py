@@ -208,6 +208,9 @@ class Estimator:
     """Base class: attitude from gyro + accelerometer (+ magnetometer) samples."""
 
     name: ClassVar[str] = ""
+    #: Someone else's published filter wrapped for comparison (``estimators.vqf_online``):
+    #: run only when named, never by default.
+    reference: ClassVar[bool] = False
     Params: ClassVar[type[CommonParams]] = CommonParams
     _state_size: ClassVar[int] = _core.PRIVATE
     # Set by subclasses from _core.make_kernels(step); staticmethod-wrapped.
@@ -238,6 +241,11 @@ class Estimator:
         self.reset()
 
     # --- parameters ----------------------------------------------------------------
+    @classmethod
+    def check_available(cls) -> None:
+        """ValueError when something the estimator needs is not installed (a reference's
+        package): said when its spec is parsed, not when the first sample comes."""
+
     @classmethod
     def param_names(cls) -> list[str]:
         return [f.name for f in dataclasses.fields(cls.Params)]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from .registry import estimator_class, names
+from .registry import estimator_class, names, reference_names
 from .spec import user_param_docs
 
 
@@ -18,7 +18,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    for name in [args.name] if args.name else names():
+    for name in [args.name] if args.name else names() + reference_names():
         cls = estimator_class(name)  # ValueError listing the valid names
         print(f"{name}: {(cls.__doc__ or '').strip().splitlines()[0]}")
         if args.name:

@@ -122,8 +122,11 @@ class EstimatorSpec:
         return dict(user_param(est_cls, k, v) for k, v in self.params.items())
 
     def validate(self) -> None:
-        """ValueError for an unknown name or a bad parameter, before any work is done."""
-        estimator_class(self.name).make_params(**self.params)
+        """ValueError for an unknown name, a bad parameter or a missing package, before
+        any work is done."""
+        est_cls = estimator_class(self.name)
+        est_cls.make_params(**self.params)
+        est_cls.check_available()
 
     def create(self, rate_hz: float = 1000.0, world: str = "NED",
                q0: np.ndarray | None = None, **defaults: ParamValue) -> Estimator:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import os
 import socket
+import struct
 import time
 from dataclasses import dataclass, field
 
@@ -13,6 +14,10 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import common as mavlink
 
 MAVLINK2_MAGIC = 0xFD
+#: Linux: the kernel stamps each datagram with when it reached the socket (struct
+#: timespec in the ancillary data), which the stdlib names on some versions only.
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+_TIMESPEC = struct.Struct("qq")
 
 
 @dataclass
@@ -21,6 +26,9 @@ class Received:
     seq: int
     data: bytes
     msg: object  # pymavlink message
+    #: when the datagram reached the socket (kernel stamp, CLOCK_REALTIME): the sender's
+    #: pace, whenever this process got round to reading it (None: not stamped)
+    kernel_s: float | None = None
 
 
 @dataclass
@@ -38,6 +46,7 @@ class Receiver:
     def open(cls) -> Receiver:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         sock.bind(("127.0.0.1", 0))
         sock.setblocking(False)
         return cls(sock)
@@ -58,12 +67,22 @@ class Receiver:
         """Read everything waiting (asyncio reader callback, or call directly)."""
         while True:
             try:
-                data, self.peer = self.sock.recvfrom(65535)
+                data, stamp = self._receive()
             except (BlockingIOError, InterruptedError):
                 return
-            self.handle(data, time.perf_counter())
+            self.handle(data, time.perf_counter(), stamp)
 
-    def handle(self, data: bytes, now: float) -> None:
+    def _receive(self) -> tuple[bytes, float | None]:
+        """One datagram and the kernel's stamp of its arrival (None if there is none)."""
+        data, ancillary, _flags, self.peer = self.sock.recvmsg(65535, 64)
+        for level, kind, payload in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and \
+                    len(payload) >= _TIMESPEC.size:
+                sec, nsec = _TIMESPEC.unpack_from(payload)
+                return data, sec + nsec * 1e-9
+        return data, None
+
+    def handle(self, data: bytes, now: float, kernel_s: float | None = None) -> None:
         self.datagrams += 1
         if len(data) < 12 or data[0] != MAVLINK2_MAGIC:
             self.truncated += 1
@@ -79,7 +98,7 @@ class Receiver:
             if msg.get_type() == "BAD_DATA":
                 self.corrupt += 1
             else:
-                self.valid.append(Received(now, msg.get_seq(), data, msg))
+                self.valid.append(Received(now, msg.get_seq(), data, msg, kernel_s))
 
     def send(self, msg, sysid: int = 255, compid: int = 190) -> None:
         """Send a pymavlink message to the stream's source (as a ground station)."""
@@ -96,12 +115,12 @@ class Receiver:
         end = time.monotonic() + limit_s
         while time.monotonic() < end:
             try:
-                data = self.sock.recv(65535)
+                data, stamp = self._receive()
             except TimeoutError:
                 if self.datagrams:
                     return
                 continue
-            self.handle(data, time.perf_counter())
+            self.handle(data, time.perf_counter(), stamp)
 
 
 def unwrap_seq(seqs: list[int]) -> list[int]:

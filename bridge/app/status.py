@@ -18,12 +18,14 @@ from imu.flight_state import state_name
 
 from ..estimate.compare import compare_all, vehicle_against_truth
 from ..estimate.pipeline import Pipeline, SourcePipeline
+from ..estimate.session import SessionScores
 from ..publish.estimates import source_info, topics_of
 from ..publish.mqtt import MqttPublisher
 from ..publish.output import AttitudeOutput
 from ..publish.record import TlogRecorder
 from ..vehicle.ingest import DROP_CAUSES, FLAG_CAUSES, Ingest
 from ..vehicle.model import describe, model_of, type_name
+from ..vehicle.references import TRUTH, VEHICLE, References
 from ..vehicle.vehicle import Vehicle
 from ..wire.admission import Admission
 from ..wire.links import Link
@@ -60,6 +62,8 @@ class StatusReporter:
         self.started = time.monotonic()
         self.last: dict[int, dict[str, Any]] = {}
         self._last_wall = self.started
+        #: per vehicle: the references its session scores were counted on, and the scores
+        self._sessions: dict[int, tuple[References, SessionScores]] = {}
 
     def restart_clock(self) -> None:
         """The service starts now: uptime and rates count from here."""
@@ -149,7 +153,24 @@ class StatusReporter:
         if vehicle.refs is not None:
             c = vehicle_against_truth(vehicle.refs, self.cfg.window_s)
             own = c.to_dict() if c is not None else None
-        return {"estimator_counters": counters, "compare": compare, "vehicle_vs_truth": own}
+        return {"estimator_counters": counters, "compare": compare, "vehicle_vs_truth": own,
+                "session_vs_truth": self._session(vehicle, src)}
+
+    def _session(self, vehicle: Vehicle, src: SourcePipeline | None
+                 ) -> dict[str, dict[str, float | int]]:
+        """Every estimator and the vehicle's own attitude against the truth since the
+        bridge started (:mod:`bridge.estimate.session`)."""
+        entry = self._sessions.get(vehicle.sysid)
+        refs = vehicle.refs
+        if refs is None or src is None:
+            return entry[1].to_dict() if entry is not None else {}
+        scores = entry[1] if entry is not None else SessionScores()
+        if entry is not None and entry[0] is not refs:
+            scores.new_timeline()  # a reboot started the references (and the clock) again
+        self._sessions[vehicle.sysid] = (refs, scores)
+        own = refs.series[VEHICLE]
+        scores.update(refs.series[TRUTH], src.history, own if len(own) >= 2 else None)
+        return scores.to_dict()
 
     def _vehicle_description(self, vehicle: Vehicle) -> dict[str, Any]:
         """What the heartbeat says the vehicle is, and what that made of the estimators."""

@@ -193,6 +193,12 @@ def summary(service: BridgeService) -> str:
                      f"restarts {st['restarts']} ({st['held_initialising']} estimates "
                      f"held while initialising)")
         lines.extend(vehicle_lines(sysid, st))
+        session = st.get("session_vs_truth")
+        if session:
+            lines.append("       against the truth over the whole session, tot/head/incl: " +
+                         ", ".join(f"{label} {e['total_deg']:.2f}/{e['heading_deg']:.2f}/"
+                                   f"{e['inclination_deg']:.2f}"
+                                   for label, e in session.items()))
     link = service.link_status()
     causes = {k: link[k] for k in ("bad_crc", "bad_frame", "truncated", "unsigned_rejected",
                                    "unsigned_accepted", "bad_signature", "replayed",

@@ -62,7 +62,7 @@ def _nearest(t_src: np.ndarray, t_query: np.ndarray) -> np.ndarray:
     return i - left_closer
 
 
-def _error_at_shift(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
+def pairs_at_shift(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
                     q_ref: np.ndarray, shift: float, max_gap: float) -> tuple[np.ndarray, ...]:
     """Reference samples and the estimates at (their time + shift), within max_gap."""
     query = t_ref + shift
@@ -94,7 +94,7 @@ def compare_series(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
     max_gap = 2.0 * float(np.median(np.diff(t_est))) + 1e-4
     best, best_rms = -1, np.inf
     for i, shift in enumerate(shifts):
-        e, r = _error_at_shift(t_est, q_est, t_r, q_r, float(shift), max_gap)
+        e, r = pairs_at_shift(t_est, q_est, t_r, q_r, float(shift), max_gap)
         if len(e) < max(3, len(t_r) // 4):
             continue
         rms = float(np.sqrt(np.mean(Q.angle_between(e, r) ** 2)))
@@ -111,7 +111,7 @@ def compare_series(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
     elif best == len(shifts) - 1 and open_ends[1]:
         lag, note = None, f"> {shifts[-1] * 1e3:.0f} ms (end of the search)"
     at = lag if (score_at_best and lag is not None) else 0.0
-    e, r = _error_at_shift(t_est, q_est, t_ref, q_ref, at, max_gap)
+    e, r = pairs_at_shift(t_est, q_est, t_ref, q_ref, at, max_gap)
     if len(e) == 0:
         return None
     err = metrics.rms_errors(e, r)

@@ -54,6 +54,9 @@ STAMP_JUMP_US = 86_400_000_000  # consecutive arrival stamps a day apart: misfra
 GPS_FIX_3D = 3
 MAV_TYPE_GCS = 6
 MAV_AUTOPILOT_INVALID = 8
+#: MAV_COMP_ID_ONBOARD_COMPUTER..4: companions (this bridge sends from 191). Their
+#: attitude in a record is a companion's estimate, never the autopilot's own.
+COMPANION_COMPONENTS = range(191, 195)
 
 
 def read(path: Path, board: str | None = None, imu: str | None = None,
@@ -351,9 +354,18 @@ def _truth(messages: dict[str, list], src: tuple, clock: BoardClock) -> Referenc
 
 def _autopilot(messages: dict[str, list], src: tuple, clock: BoardClock
                ) -> Reference | None:
-    """The vehicle's own estimate: ATTITUDE_QUATERNION, else ATTITUDE."""
-    for kind in ("ATTITUDE_QUATERNION", "ATTITUDE"):
-        rows = _same_component(messages.get(kind, []), src)
+    """The vehicle's own estimate: ATTITUDE_QUATERNION, else ATTITUDE, from the IMU's own
+    component first (an emulated board that sends only ATTITUDE has it there, while a
+    bridge's record also holds the bridge's ATTITUDE_QUATERNION under the vehicle's
+    system id), then from another component of the vehicle that is not a companion."""
+    candidates = [(kind, [m for m in messages.get(kind, [])
+                          if (m.get_srcSystem(), m.get_srcComponent()) == src])
+                  for kind in ("ATTITUDE_QUATERNION", "ATTITUDE")]
+    candidates += [(kind, [m for m in messages.get(kind, [])
+                           if m.get_srcSystem() == src[0] and m.get_srcComponent() != src[1]
+                           and m.get_srcComponent() not in COMPANION_COMPONENTS])
+                   for kind in ("ATTITUDE_QUATERNION", "ATTITUDE")]
+    for kind, rows in candidates:
         if not rows:
             continue
         t, how = _message_times(rows, "time_boot_ms", 1e-3, clock)

@@ -67,7 +67,7 @@ def record_emulator_tlog(path, profile: str, duration_s: float, rate_hz: float) 
     async def run() -> list:
         rx = Receiver.open()
         frames = []
-        rx.handle = lambda data, now: frames.append((time.time(), data))  # keep raw frames
+        rx.handle = lambda data, now, kernel_s=None: frames.append((time.time(), data))  # raw
         loop = asyncio.get_running_loop()
         rx.attach(loop)
         cfg = EmulatorConfig(profile=profile, rate_hz=rate_hz, duration_s=duration_s,

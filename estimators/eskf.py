@@ -70,7 +70,13 @@ the velocity information), the bias random walk and a velocity random walk.
   steady, from rest), and, unless the vehicle flies, the low-passed gyro measures the
   bias (a hover is steady but not still: a slow yaw, the position hold's corrections).
   Not the velocity: a multirotor cruising at constant speed is exactly as steady as one
-  standing on the ground.
+  standing on the ground. At the start — a vehicle is powered up at rest, as the
+  flight-state detector assumes too — the wait is waived while the body has been steady
+  since its first sample: the mean specific force levels the estimate from the first
+  update, as an inertial system levels before it navigates. Started from one sample,
+  the tilt was otherwise left to the bounded-velocity prior for half a second, and the
+  heading, averaged from readings turned by that tilt, kept its trace for seconds. The
+  bias still waits for ``rest_time``: its low-pass must settle first.
 * *Magnetometer, heading only*: the heading of the field rotated into the world frame
   is a measurement of ``δθ_z``; its gain on ``δθ_x, δθ_y`` is zeroed (Joseph form keeps
   ``P`` consistent), so a disturbed field cannot tilt the estimate, while the bias
@@ -321,6 +327,7 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _MAG_REJ_T,  # heading innovations rejected for this long [s]
  _FROM_SAMPLE,  # 1 until the first step after starting from one sample (see _first_step)
  _P_AIR,  # flight-state detector: probability that the vehicle is in the air
+ _STILL_FROM_START,  # 1 while the body has been steady since the first sample
  _H,  # scratch: measurement rows (3 × _NX)
  _PHT,  # scratch: P·Hᵀ (_NX × 3)
  _K,  # scratch: gain (_NX × 3)
@@ -328,7 +335,7 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _JA, _JB,  # scratch: Joseph form's I − K·H and (I − K·H)·P (_NX × _NX each)
  TAP,  # what the smoother needs of the last Kalman step (TAP_* below)
  _STATE_SIZE) = _layout(3, 1, _NX * _NX, 1, 1, 1, 3, 3, 3, 1, 3, 3, 3, 3, 3, 3, 1, 1, 1, 1,
-                        1, 1, 1, 1, 1, 1, 1, 1, 1, 3, 1, 1, 3, 3, 1, 3, 1, 1, 1, 1, 1,
+                        1, 1, 1, 1, 1, 1, 1, 1, 1, 3, 1, 1, 3, 3, 1, 3, 1, 1, 1, 1, 1, 1,
                         3 * _NX, 3 * _NX, 3 * _NX, _NX, _NX * _NX, _NX * _NX,
                         15 + 2 * (11 + _NX * _NX))
 
@@ -895,6 +902,8 @@ def _rest_detection(state: np.ndarray, params: np.ndarray, gx: float, gy: float,
             da += (state[_APF + j] - state[_ALP + j]) ** 2
         steady = steady and da < params[_I.rest_acc_th] ** 2
     state[_REST_T] = state[_REST_T] + dt if steady else 0.0
+    if not steady and state[_LP_OK] > 0.0:
+        state[_STILL_FROM_START] = 0.0
 
 
 @_core.kernel(inline="always")
@@ -1019,11 +1028,14 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
         state[_core.ACC_REJ] = 1.0
     now = state[_core.RUN_T]
     aided = now - state[_AID_T] <= params[_I.aid_timeout]
-    at_rest = state[_REST_T] >= params[_I.rest_time]
+    # (steady since the first sample: at rest without the wait, see the module doc)
+    at_rest = state[_REST_T] >= params[_I.rest_time] or (
+        state[_STILL_FROM_START] > 0.0 and state[_REST_T] > 0.0)
     drag = _drag_model_on(state, params, T, r)
     if at_rest:
         flying = drag or state[_core.FLIGHT] == _core.FLIGHT_AIRBORNE
-        _rest_update(state, params, T, aided and not drag, not flying)
+        _rest_update(state, params, T, aided and not drag,
+                     not flying and state[_REST_T] >= params[_I.rest_time])
         r = _rotation(state)
     else:
         state[_REST_ANCHORED] = 0.0
@@ -1195,6 +1207,7 @@ class Eskf(Estimator):
         state[_AID_T] = -math.inf
         state[_PEND:_PEND + 3] = math.nan
         state[_P_AIR] = P_AIR_AT_START
+        state[_STILL_FROM_START] = 1.0
 
     @property
     def velocity(self) -> np.ndarray:

@@ -2,17 +2,18 @@
 
 Emulated GY-86 board (calibrated from its own calibration session, 250 Hz) on the
 emulator's profiles, with the flight state the emulator reports. Gates are at most 1.5x
-what was measured (docs/accuracy.md; handheld_flight re-measured when the rest test
-stopped measuring the gyro bias in the air):
+what was measured (docs/accuracy.md; re-measured when the start-up rest levelled the
+estimate from the first update: tilt 0.51, gentle 0.62, calibration 0.35, handheld_flight
+0.270 / 0.093 and 0.299 / 0.138 before):
 
 =================  ==========================  ===============
 profile            measured total / incl [°]   gate
 =================  ==========================  ===============
-tilt (15 s)        0.51 / 0.11                 0.77
-gentle (15 s)      0.62 / 0.31                 0.92
-calibration        0.35 / 0.14                 0.49
-handheld_flight    0.270 / 0.093 (state given) 0.37 / 0.14
-handheld_flight    0.299 / 0.138 (data alone)  0.37 / 0.157
+tilt (15 s)        0.244 / 0.035               0.36
+gentle (15 s)      0.385 / 0.286               0.57
+calibration        0.239 / 0.128               0.35
+handheld_flight    0.197 / 0.078 (state given) 0.29 / 0.11
+handheld_flight    0.230 / 0.121 (data alone)  0.34 / 0.157
 =================  ==========================  ===============
 """
 
@@ -58,7 +59,7 @@ def _run(data, airborne, **params):
 
 
 @pytest.mark.parametrize("profile, seconds, gate", [
-    ("tilt", 15.0, 0.77), ("gentle", 15.0, 0.92), ("calibration", 60.0, 0.49)])
+    ("tilt", 15.0, 0.36), ("gentle", 15.0, 0.57), ("calibration", 60.0, 0.35)])
 def test_a_quadrotor_moved_by_hand_runs_no_drag_model(calibration, profile, seconds, gate):
     """A quadrotor (drag prior on, as the product sets it for MAV_TYPE_QUADROTOR) carried
     by hand: told it is on the ground, or told nothing (the data decide), it must do as
@@ -85,7 +86,7 @@ def test_touchdown_and_second_take_off_follow_the_reported_state(calibration):
     assert len(edges) == 4, "two take-offs and two touchdowns"
     told, air = _run(data, airborne, drag=MULTIROTOR_DRAG_PER_S)
     assert np.array_equal(air, airborne > 0)
-    assert told.total_deg < 0.37 and told.inclination_deg < 0.14, told
+    assert told.total_deg < 0.29 and told.inclination_deg < 0.11, told
     off, _ = _run(data, None, drag=0.0)
     assert off.total_deg > 5.0 * told.total_deg
 
@@ -96,7 +97,7 @@ def test_without_a_flight_state_the_data_decide(calibration):
     data = _recording("handheld_flight", 120.0, calibration)
     alone, air = _run(data, None, drag=MULTIROTOR_DRAG_PER_S)
     truly = data[4] > 0
-    assert alone.total_deg < 0.37 and alone.inclination_deg < 0.157, alone
+    assert alone.total_deg < 0.34 and alone.inclination_deg < 0.157, alone
     # the hand-held part (first 12 s) never looks like flight; most of the flight does
     assert not air[: int(12 * RATE)].any()
     assert air[truly].mean() > 0.8, air[truly].mean()

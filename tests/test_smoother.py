@@ -20,8 +20,8 @@ from replay import load
 from replay.evaluate import aiding_kwargs, evaluate, flight_kwargs, prepare
 
 #: (flight, smoothed total, smoothed inclination) measured with the defaults [deg]
-PX4_SMOOTHED = {"px4_sih/sih_aggressive.tlog": (0.791, 0.357),
-                "px4_sih/sih_box.tlog": (0.682, 0.391),
+PX4_SMOOTHED = {"px4_sih/sih_aggressive.tlog": (0.793, 0.357),
+                "px4_sih/sih_box.tlog": (0.679, 0.391),
                 "sitl/px4_sih_touchdown.tlog": (0.986, 0.726),
                 "sitl/px4_sih_dashes.tlog": (0.897, 0.599)}
 HEADROOM = 1.1

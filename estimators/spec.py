@@ -22,7 +22,6 @@ from .registry import estimator_class
 ParamValue = float | bool | str
 
 
-
 def angle_params(est_cls: type[Estimator]) -> dict[str, str]:
     """Parameter name -> its degree alias (``declination`` -> ``declination_deg``) for
     every parameter whose documented unit is ``[rad]`` or ``[rad/s]``."""

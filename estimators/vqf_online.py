@@ -56,6 +56,7 @@ from .registry import register
 TS_TOLERANCE = 0.1
 #: Time constant [s] of the low-pass of the stream's step.
 _DT_TAU = 1.0
+_NO_Q0 = "estimator 'vqf' starts from its first samples; it takes no q0"
 
 
 @dataclass(frozen=True)
@@ -91,12 +92,11 @@ class VqfOnline(Estimator):
         if not (math.isfinite(rate_hz) and rate_hz > 0.0):
             raise ValueError(f"rate_hz must be a positive number, got {rate_hz!r}")
         if q0 is not None:
-            raise ValueError("estimator 'vqf' starts from its first samples; it takes no q0")
+            raise ValueError(_NO_Q0)
         self._module = _vqf_module()
         self.rate_hz = float(rate_hz)
         self.world = "ENU" if Q.world_is_enu(world) else "NED"
         self.params = self.make_params(**params)
-        self._flight: bool | None = None
         self.reset()
 
     @classmethod
@@ -112,7 +112,7 @@ class VqfOnline(Estimator):
         self.params = self._replaced(imu_delay=float(delay_s))
 
     def set_flight_state(self, airborne: bool | None) -> None:
-        self._flight = airborne  # kept for the interface; VQF has no flight-only model
+        """Accepted and not used: VQF has no flight-only model."""
 
     @property
     def air_model(self) -> bool:
@@ -125,13 +125,12 @@ class VqfOnline(Estimator):
         return w, x, y, z
 
     def _replaced(self, **changes: float) -> VqfParams:
-        return self.make_params(**{**{f.name: getattr(self.params, f.name)
-                                      for f in dataclasses.fields(self.params)}, **changes})
+        return self.make_params(**{**dataclasses.asdict(self.params), **changes})
 
     # --- state ----------------------------------------------------------------------
     def reset(self, q0: np.ndarray | None = None) -> None:
         if q0 is not None:
-            raise ValueError("estimator 'vqf' starts from its first samples; it takes no q0")
+            raise ValueError(_NO_Q0)
         self._to_world = self._world_factor()
         self._ts = 1.0 / self.rate_hz
         self._mean_dt = self._ts

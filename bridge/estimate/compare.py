@@ -63,7 +63,7 @@ def _nearest(t_src: np.ndarray, t_query: np.ndarray) -> np.ndarray:
 
 
 def pairs_at_shift(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
-                    q_ref: np.ndarray, shift: float, max_gap: float) -> tuple[np.ndarray, ...]:
+                   q_ref: np.ndarray, shift: float, max_gap: float) -> tuple[np.ndarray, ...]:
     """Reference samples and the estimates at (their time + shift), within max_gap."""
     query = t_ref + shift
     idx = _nearest(t_est, query)

@@ -205,6 +205,13 @@ def to_rotvec(q: np.ndarray) -> np.ndarray:
     return vec * k
 
 
+def slerp(q0: np.ndarray, q1: np.ndarray, frac: np.ndarray) -> np.ndarray:
+    """The attitude ``frac`` (0..1) of the way from ``q0`` to ``q1``, row by row:
+    ``q0 ⊗ exp(frac · log(q0* ⊗ q1))``, the shortest rotation at a constant rate."""
+    step = canonical(multiply(conjugate(q0), q1))
+    return multiply(q0, from_rotvec(np.asarray(frac, dtype=float)[..., None] * to_rotvec(step)))
+
+
 def from_axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     """Quaternion of a rotation by ``angle`` (radians) about ``axis`` (any length > 0)."""
     axis = np.asarray(axis, dtype=float)

@@ -38,12 +38,8 @@ def reference_at(ref: Reference, t: np.ndarray, method: str = "slerp",
     inside = (t >= ref.t[0]) & (t <= ref.t[-1]) & (t1 - t0 <= max_gap)
     frac = np.clip((t - t0) / (t1 - t0), 0.0, 1.0)
     q0, q1 = ref.q[i0], ref.q[i0 + 1]
-    if method == "nearest":
-        q = np.where((frac < 0.5)[:, None], q0, q1)
-    else:
-        # q(f) = q0 ⊗ exp(f · log(q0* ⊗ q1)): the shortest rotation, at constant rate.
-        step = Q.canonical(Q.multiply(Q.conjugate(q0), q1))
-        q = Q.multiply(q0, Q.from_rotvec(frac[:, None] * Q.to_rotvec(step)))
+    q = (np.where((frac < 0.5)[:, None], q0, q1) if method == "nearest"
+         else Q.slerp(q0, q1, frac))
     out[inside] = q[inside]
     return out
 

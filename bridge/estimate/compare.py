@@ -55,20 +55,20 @@ class Comparison:
         return out
 
 
-def _nearest(t_src: np.ndarray, t_query: np.ndarray) -> np.ndarray:
-    """Index into sorted ``t_src`` of the sample nearest to each query time."""
-    i = np.clip(np.searchsorted(t_src, t_query), 1, len(t_src) - 1)
-    left_closer = (t_query - t_src[i - 1]) < (t_src[i] - t_query)
-    return i - left_closer
-
-
 def pairs_at_shift(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
                    q_ref: np.ndarray, shift: float, max_gap: float) -> tuple[np.ndarray, ...]:
-    """Reference samples and the estimates at (their time + shift), within max_gap."""
+    """Reference samples and the estimates at (their time + shift), interpolated between
+    the two estimates around that time where those are no more than max_gap apart.
+    Interpolated, not the nearest sample: the vehicle's own attitude comes at 50 Hz, and
+    its nearest sample, up to 10 ms away in a turn, would charge it with an error that is
+    the pairing's (as the replay does, ``replay.align.reference_at``)."""
     query = t_ref + shift
-    idx = _nearest(t_est, query)
-    ok = (np.abs(t_est[idx] - query) <= max_gap) & (query >= t_est[0]) & (query <= t_est[-1])
-    return q_est[idx[ok]], q_ref[ok]
+    i0 = np.clip(np.searchsorted(t_est, query, side="right") - 1, 0, len(t_est) - 2)
+    t0, t1 = t_est[i0], t_est[i0 + 1]
+    ok = (query >= t_est[0]) & (query <= t_est[-1]) & (t1 - t0 <= max_gap)
+    i0, t0, t1 = i0[ok], t0[ok], t1[ok]
+    frac = np.clip((query[ok] - t0) / np.maximum(t1 - t0, 1e-12), 0.0, 1.0)
+    return Q.slerp(q_est[i0], q_est[i0 + 1], frac), q_ref[ok]
 
 
 #: A reference turning less than this over the window shows no lag (on the ground).

@@ -155,10 +155,8 @@ class Session:
         tt, qt = self.truth
         keep = (t >= t0) & (t <= t1) & (t > tt[0]) & (t < tt[-1])
         i = np.searchsorted(tt, t[keep])
-        w = ((t[keep] - tt[i - 1]) / (tt[i] - tt[i - 1]))[:, None]
-        a, b = qt[i - 1], qt[i]
-        b = np.where(np.sum(a * b, axis=1, keepdims=True) < 0, -b, b)  # same hemisphere
-        return metrics.rms_errors(q[keep], Q.normalize((1.0 - w) * a + w * b))
+        frac = (t[keep] - tt[i - 1]) / (tt[i] - tt[i - 1])
+        return metrics.rms_errors(q[keep], Q.slerp(qt[i - 1], qt[i], frac))
 
     def flight_span(self) -> tuple[float, float]:
         """From the first arming to the last disarming (take-off, flight, landing)."""

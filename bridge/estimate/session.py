@@ -48,51 +48,57 @@ class SessionScores:
 
     def __init__(self) -> None:
         self._sums: dict[str, _Sums] = {}
-        self._counted_to = -math.inf  # board time of the last truth sample counted
+        # per label: board time of the last truth sample counted for it. Per label because
+        # a slower series (the vehicle's own attitude at 50 Hz) has not yet reached the
+        # newest truth samples when the estimators have; those wait for its next sample.
+        self._counted_to: dict[str, float] = {}
 
     def new_timeline(self) -> None:
         """The board clock started again (a reboot): count from its new beginning; the
         sums so far stay (they were scored right)."""
-        self._counted_to = -math.inf
+        self._counted_to.clear()
 
     def update(self, truth: TimeRing, estimators: dict[str, TimeRing],
                vehicle_own: TimeRing | None = None) -> None:
-        """Score the truth samples since the last call that the estimators have reached
-        (the vehicle's own attitude where it has one near them: a stream of its that
-        stopped must not hold the estimators' count back)."""
+        """Score, for each series, the truth samples since its last count that it has
+        reached: a truth sample is scored once its series has a sample on each side."""
         reached = [ring.last_t for ring in estimators.values() if len(ring) >= 2]
         if len(truth) < 2 or not reached:
             return
-        upper = min(reached)
-        t_ref, q_ref = truth.snapshot(self._counted_to)
-        fresh = (t_ref > self._counted_to) & (t_ref <= upper)
-        if not fresh.any():
-            return
-        t_ref, q_ref = t_ref[fresh], q_ref[fresh]
+        upper = min(reached)  # the estimators are scored over the same samples
         series = dict(estimators)
         if vehicle_own is not None:
             series[VEHICLE_OWN] = vehicle_own
+        series = {label: ring for label, ring in series.items() if len(ring) >= 2}
+        counted = {label: self._counted_to.get(label, -math.inf) for label in series}
+        t_truth, q_truth = truth.snapshot(min(counted.values()))  # bounded by the ring
         for label, ring in series.items():
-            if len(ring) < 2:
+            fresh = ((t_truth > counted[label]) & (t_truth <= min(upper, ring.last_t)))
+            if not fresh.any():
                 continue
-            t_est, q_est = ring.snapshot(float(t_ref[0]) - 1.0)
-            valid = np.all(np.isfinite(q_est), axis=1)
-            t_est, q_est = t_est[valid], q_est[valid]
-            if len(t_est) < 2:
-                continue
-            order = np.argsort(t_est, kind="stable")
-            t_est, q_est = t_est[order], q_est[order]
-            # the vehicle's own attitude comes at tens of Hz: its own step sets the gap
-            max_gap = 2.0 * float(np.median(np.diff(t_est))) + 1e-4
-            est, ref = pairs_at_shift(t_est, q_est, t_ref, q_ref, 0.0, max_gap)
-            e = metrics.attitude_errors(est, ref)
-            keep = np.isfinite(e.total)
-            sums = self._sums.setdefault(label, _Sums())
-            sums.samples += int(keep.sum())
-            sums.total += float(np.sum(e.total[keep] ** 2))
-            sums.heading += float(np.sum(e.heading[keep] ** 2))
-            sums.inclination += float(np.sum(e.inclination[keep] ** 2))
-        self._counted_to = float(t_ref[-1])
+            t_ref, q_ref = t_truth[fresh], q_truth[fresh]
+            self._score(label, ring, t_ref, q_ref)
+            self._counted_to[label] = float(t_ref[-1])
+
+    def _score(self, label: str, ring: TimeRing, t_ref: np.ndarray,
+               q_ref: np.ndarray) -> None:
+        t_est, q_est = ring.snapshot(float(t_ref[0]) - 1.0)
+        valid = np.all(np.isfinite(q_est), axis=1)
+        t_est, q_est = t_est[valid], q_est[valid]
+        if len(t_est) < 2:
+            return
+        order = np.argsort(t_est, kind="stable")
+        t_est, q_est = t_est[order], q_est[order]
+        # the vehicle's own attitude comes at tens of Hz: its own step sets the gap
+        max_gap = 2.0 * float(np.median(np.diff(t_est))) + 1e-4
+        est, ref = pairs_at_shift(t_est, q_est, t_ref, q_ref, 0.0, max_gap)
+        e = metrics.attitude_errors(est, ref)
+        keep = np.isfinite(e.total)
+        sums = self._sums.setdefault(label, _Sums())
+        sums.samples += int(keep.sum())
+        sums.total += float(np.sum(e.total[keep] ** 2))
+        sums.heading += float(np.sum(e.heading[keep] ** 2))
+        sums.inclination += float(np.sum(e.inclination[keep] ** 2))
 
     def to_dict(self) -> dict[str, dict[str, float | int]]:
         """{label: total/heading/inclination RMS [deg] and samples} of what was scored."""

@@ -91,6 +91,13 @@ the velocity information), the bias random walk and a velocity random walk.
   Behind a sender's IMU low-pass (``imu_delay``, ArduPilot) the gyro is the older one:
   the reading is then turned by (``mag_delay`` − ``imu_delay``) × the rate, forward.
 
+* *A gyro that repeats one reading*: a quantised gyro without noise (a simulator at
+  rest: ArduPilot SITL's RAW_IMU, in whole mrad/s truncated toward zero) hides its bias
+  within one step, and repeating the reading narrows nothing; the first vibration
+  dithers the quantiser and shows the bias as it is. While the reading has not changed
+  for ``rest_time``, the bias variance is kept at ``gyro_resolution``²/3 at least. A
+  gyro with noise, any real one, never triggers it.
+
 Every Kalman step leaves its prediction and its result (state, covariance, the
 transition's ingredients) in the state's ``TAP`` block, and flags the re-anchorings done
 outside the update: what :mod:`estimators.smoother` reads to smooth a whole recording
@@ -103,8 +110,9 @@ densities and ``mag_delay`` on ``benchmarks/accuracy.py``'s grid were chosen on 
 flights, 3 emulator hand-held recordings), and the same script cross-validates that
 choice leaving one recording out at a time. Everything else — the model's structure,
 the drag prior, the flight-state detector's constants, ``aid_heading`` /
-``drag_heading`` and the remaining noise values — was set by hand while looking at
-those same recordings (docs/accuracy.md lists them), so it is in-sample.
+``drag_heading``, ``gyro_resolution`` (MAVLink's mrad/s) and the remaining noise
+values — was set by hand while looking at those same recordings (docs/accuracy.md
+lists them), so it is in-sample.
 """
 
 from __future__ import annotations
@@ -165,7 +173,7 @@ class EskfParams(CommonParams):
         "rest_gyr_th": (1e-6, math.inf), "rest_acc_th": (1e-6, math.inf),
         "rest_bias_th": (1e-6, math.inf), "rest_mag_th": (1e-6, math.inf),
         # the vehicle
-        "gravity": (1.0, 30.0), "drag": (0.0, 100.0),
+        "gravity": (1.0, 30.0), "drag": (0.0, 100.0), "gyro_resolution": (0.0, 1.0),
         # switches
         "aid_heading": (0.0, 1.0), "drag_heading": (0.0, 1.0),
     }
@@ -184,6 +192,10 @@ class EskfParams(CommonParams):
     bias_init: float = param(0.5 * _DEG, "initial gyro-bias standard deviation [rad/s]")
     bias_max: float = param(20.0 * _DEG, "bias estimate clip per axis [rad/s] (the "
                                          "MPU6050's zero-rate offset range)")
+    gyro_resolution: float = param(1e-3, "a gyro reading that stays exactly the same at "
+                                         "rest hides its bias to within this step [rad/s] "
+                                         "(MAVLink's RAW_IMU / SCALED_IMU: 1 mrad/s): the "
+                                         "bias learned from it is kept this uncertain")
     tilt_init: float = param(20.0 * _DEG, "initial tilt standard deviation [rad] (a start "
                                           "from one sample of a vibrating vehicle can be "
                                           "this far off)")
@@ -328,6 +340,8 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _FROM_SAMPLE,  # 1 until the first step after starting from one sample (see _first_step)
  _P_AIR,  # flight-state detector: probability that the vehicle is in the air
  _STILL_FROM_START,  # 1 while the body has been steady since the first sample
+ _G_PREV,  # 3: the previous gyro sample as given
+ _G_SAME_T,  # how long the gyro sample has stayed exactly the same [s]
  _H,  # scratch: measurement rows (3 × _NX)
  _PHT,  # scratch: P·Hᵀ (_NX × 3)
  _K,  # scratch: gain (_NX × 3)
@@ -335,7 +349,7 @@ def _layout(*sizes: int) -> tuple[int, ...]:
  _JA, _JB,  # scratch: Joseph form's I − K·H and (I − K·H)·P (_NX × _NX each)
  TAP,  # what the smoother needs of the last Kalman step (TAP_* below)
  _STATE_SIZE) = _layout(3, 1, _NX * _NX, 1, 1, 1, 3, 3, 3, 1, 3, 3, 3, 3, 3, 3, 1, 1, 1, 1,
-                        1, 1, 1, 1, 1, 1, 1, 1, 1, 3, 1, 1, 3, 3, 1, 3, 1, 1, 1, 1, 1, 1,
+                        1, 1, 1, 1, 1, 1, 1, 1, 1, 3, 1, 1, 3, 3, 1, 3, 1, 1, 1, 1, 1, 1, 3, 1,
                         3 * _NX, 3 * _NX, 3 * _NX, _NX, _NX * _NX, _NX * _NX,
                         15 + 2 * (11 + _NX * _NX))
 
@@ -423,6 +437,17 @@ def _predict_covariance(state: np.ndarray, params: np.ndarray, T: float) -> None
         state[_pi(_TH + i, _TH + i)] += qa
         state[_pi(_BI + i, _BI + i)] += qb
         state[_pi(_VE + i, _VE + i)] += qv
+    res = params[_I.gyro_resolution]
+    if res > 0.0 and state[_G_SAME_T] >= params[_I.rest_time]:
+        # A quantised gyro without noise (a simulator at rest) repeats one reading: the
+        # bias under it is anywhere within a step of it (truncation: either side), and
+        # no number of repeats narrows that, while the first vibration dithers the
+        # quantiser and shows the bias as it is. Keep its variance at a step's².
+        floor = res * res / 3.0
+        for i in range(3):
+            short = floor - state[_pi(_BI + i, _BI + i)]
+            if short > 0.0:
+                state[_pi(_BI + i, _BI + i)] += short
 
 
 @_core.kernel
@@ -1147,6 +1172,11 @@ def _step(state, params, gx, gy, gz, ax, ay, az, mx, my, mz, acc_ok, mag_ok, dt,
     state[_TURN2] += turn2 * dt
     _mag_steadiness(state, params, mx, my, mz, mag_ok, dt)
     _rest_detection(state, params, gx, gy, gz, ax, ay, az, acc_ok, dt)
+    if gx == state[_G_PREV] and gy == state[_G_PREV + 1] and gz == state[_G_PREV + 2]:
+        state[_G_SAME_T] += dt
+    else:
+        state[_G_SAME_T] = 0.0
+        state[_G_PREV], state[_G_PREV + 1], state[_G_PREV + 2] = gx, gy, gz
     state[_MAG_DT] += dt
     if mag_ok:
         # A magnetometer slower than the IMU is often repeated in every IMU message
@@ -1208,6 +1238,7 @@ class Eskf(Estimator):
         state[_PEND:_PEND + 3] = math.nan
         state[_P_AIR] = P_AIR_AT_START
         state[_STILL_FROM_START] = 1.0
+        state[_G_PREV:_G_PREV + 3] = math.nan
 
     @property
     def velocity(self) -> np.ndarray:

@@ -210,7 +210,11 @@ class Firmware:
         if kind == "RAW_IMU":
             time_us = rec.time_us.tolist()
             if self.personality.name == "ardupilot":  # mG, mrad/s, mGauss, FRD
-                return lambda k: mavlink.MAVLink_raw_imu_message(time_us[k], *milli[k], 0,
+                # truncated toward zero, as ArduPilot's float -> int16 conversion does
+                cut = np.hstack([_int16_array(acc / G * 1000.0, truncate=True),
+                                 _int16_array(gyr * 1000.0, truncate=True),
+                                 _int16_array(mag * 1000.0, truncate=True)]).tolist()
+                return lambda k: mavlink.MAVLink_raw_imu_message(time_us[k], *cut[k], 0,
                                                                  temp[k])
             rows = np.hstack([rec.acc_counts, rec.gyr_counts, rec.mag_counts]).tolist()
             return lambda k: mavlink.MAVLink_raw_imu_message(time_us[k], *rows[k], 0, temp[k])
@@ -327,8 +331,12 @@ class Firmware:
                 "LOCAL_POSITION_NED": local_position}
 
 
-def _int16_array(x: np.ndarray) -> np.ndarray:
-    return np.clip(np.round(np.asarray(x, dtype=float)), -32768, 32767).astype(np.int64)
+def _int16_array(x: np.ndarray, truncate: bool = False) -> np.ndarray:
+    """int16 values of x, rounded to nearest, or truncated toward zero as C's float to
+    integer conversion does (what ArduPilot's RAW_IMU carries)."""
+    v = np.asarray(x, dtype=float)
+    v = np.trunc(v) if truncate else np.round(v)
+    return np.clip(v, -32768, 32767).astype(np.int64)
 
 
 def _pressure_altitude(pressure_hpa: float) -> float:

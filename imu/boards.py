@@ -59,6 +59,12 @@ class BoardProfile:
     #: repeated on all six axes is a stuck sensor. ArduPilot's are filtered and rounded
     #: to mG / mrad/s: a quiet board (or a simulator at rest) repeats them honestly.
     sensor_counts: bool = True
+    #: The sender made its integers from a float by C's conversion, which truncates
+    #: toward zero (ArduPilot: ``gyro * 1000`` into an int16 field): a count k ≠ 0 stands
+    #: for a value between k and k ± 1, on average k ± ½, and 0 for one in (−1, 1).
+    #: Taken as k, every reading is half a step short of its value on the side away
+    #: from zero, which in a steady turn is a gyro bias that flips with the turn.
+    truncated: bool = False
 
     @property
     def gyro_range(self) -> float:
@@ -86,6 +92,11 @@ class BoardProfile:
         """Gauss in FRD; NaN if any axis overflowed."""
         return self._convert(counts, self.mag_scale, None, self.mag_overflow)
 
+    def centred(self, counts: np.ndarray) -> np.ndarray:
+        """The counts as the middle of the values they stand for (see ``truncated``)."""
+        c = np.asarray(counts, dtype=float)
+        return c + 0.5 * np.sign(c) if self.truncated else c
+
     def _convert(self, counts: np.ndarray, scale: float, saturation: int | None,
                  overflow: int | None) -> np.ndarray:
         c = np.asarray(counts, dtype=float)
@@ -94,7 +105,7 @@ class BoardProfile:
             bad |= np.any(np.abs(c) >= saturation, axis=-1)
         if overflow is not None:
             bad |= np.any(c == overflow, axis=-1)
-        v = (c * scale) @ self.to_frd.T
+        v = (self.centred(c) * scale) @ self.to_frd.T
         return np.where(bad[..., None], np.nan, v)
 
 
@@ -126,6 +137,7 @@ def ardupilot() -> BoardProfile:
         accel_saturation=None,
         mag_overflow=None,
         sensor_counts=False,
+        truncated=True,  # GCS_MAVLINK::send_raw_imu / send_scaled_imu
     )
 
 

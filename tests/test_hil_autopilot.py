@@ -225,9 +225,13 @@ def test_ardupilot_raw_imu_in_its_units(ardupilot):
     acc_mg = np.array([[m.xacc, m.yacc, m.zacc] for m in raw])
     gyr_mrad = np.array([[m.xgyro, m.ygyro, m.zgyro] for m in raw])
     mag_mgauss = np.array([[m.xmag, m.ymag, m.zmag] for m in raw])
-    assert np.all(np.abs(acc_mg - rec.acc[idx] / G * 1000.0) <= 0.5 + 1e-6)
-    assert np.all(np.abs(gyr_mrad - rec.gyr[idx] * 1000.0) <= 0.5 + 1e-6)
-    assert np.all(np.abs(mag_mgauss - rec.mag[idx] * 1000.0) <= 0.5 + 1e-6)
+    # truncated toward zero, as ArduPilot's float -> int16 conversion does: each count
+    # is the value's integer part, never further from zero than the value
+    for counts, value in ((acc_mg, rec.acc[idx] / G * 1000.0),
+                          (gyr_mrad, rec.gyr[idx] * 1000.0), (mag_mgauss, rec.mag[idx] * 1000.0)):
+        assert np.all(np.abs(counts) <= np.abs(value) + 1e-6)
+        assert np.all(np.abs(value) - np.abs(counts) < 1.0 + 1e-6)
+        assert np.all((counts == 0) | (np.sign(counts) == np.sign(value)))
     on_ground = rec.t_s[idx] < 4.0
     assert np.allclose(acc_mg[on_ground].mean(axis=0), [0, 0, -1000], atol=60)  # FRD, mG
     # SCALED_IMU2 as well, in the same units

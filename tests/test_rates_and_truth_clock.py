@@ -130,6 +130,29 @@ def test_repeated_readings_are_stuck_only_for_sensor_counts(board, stuck):
     assert (counts["stuck"] > 0) == bool(stuck)
 
 
+@pytest.mark.parametrize(("board", "half_step"), [("ardupilot", 0.5), ("gy86", 0.0)])
+def test_truncated_counts_are_read_as_the_middle_of_what_they_stand_for(board, half_step):
+    """ArduPilot fills RAW_IMU with ``gyro * 1000`` converted to int16, which truncates
+    toward zero: a count k ≠ 0 stands for a value between k and k ± 1, so the bridge and
+    the replay read it as k ± ½ and 0 as 0. A GY-86's counts are the sensor's own."""
+    profile = board_profile(board)
+    counts = (3, -3, 0, 5, -7, 0, 100, -200, 0)  # acc (mG), gyro (mrad/s), mag (mGauss)
+    numbers = np.array(counts, dtype=float)
+    expected = numbers + half_step * np.sign(numbers)
+    assert np.array_equal(profile.centred(numbers), expected)
+    ingest = Ingest(profile)
+    samples = []
+    for k in range(20):
+        m = _raw_imu(1_000_000 + 4000 * k, counts)
+        samples += ingest.handle_all(m, 1.0 + 0.004 * k, ingest.key_of(m))
+    got = samples[-1]
+    assert np.allclose(got.gyr, profile.gyro(np.array(counts[3:6])), rtol=1e-12, atol=0)
+    assert np.allclose(got.acc, profile.accel(np.array(counts[0:3])), rtol=1e-12, atol=0)
+    if board == "ardupilot":
+        assert np.allclose(got.gyr, [5.5e-3, -7.5e-3, 0.0], rtol=1e-12, atol=0)
+        assert np.allclose(got.mag, [0.1005, -0.2005, 0.0], rtol=1e-12, atol=0)
+
+
 def test_an_arducopter_tlog_replays_at_its_mean_rate():
     from replay.readers import load
 

@@ -223,7 +223,8 @@ class Ingest:
         acc_clipped = p.accel_saturation is not None and max(map(abs, a)) >= p.accel_saturation
         mag_overflow = p.mag_overflow is not None and p.mag_overflow in mg
         raw = g + a
-        si = raw_map.matrix @ np.array(raw + mg + _ONE, dtype=float)
+        numbers = p.centred(np.array(raw + mg, dtype=float))  # half steps, if truncated
+        si = raw_map.matrix[:, :9] @ numbers + raw_map.matrix[:, 9]
         acc = np.full(3, np.nan) if acc_clipped else si[3:6]
         mag = None if mg == (0, 0, 0) or mag_overflow else si[6:9]
         flags: tuple[str, ...] = ()

@@ -108,9 +108,14 @@ def test_tlog_replay_matches_independent_scoring(data_dir):
     assert len(t_all) - cut > cut
     rows = imu[cut:]
     t = t_all[cut:]
-    gyr = np.array([[m.xgyro, m.ygyro, m.zgyro] for m in rows]) * 1e-3  # mrad/s
-    acc = np.array([[m.xacc, m.yacc, m.zacc] for m in rows]) * 9.80665e-3  # mG
-    mag = np.array([[m.xmag, m.ymag, m.zmag] for m in rows]) * 1e-3  # mGauss
+    # ArduPilot's integers are its floats truncated toward zero: k stands for k ± ½
+    def middle(counts: list[list[int]]) -> np.ndarray:
+        k = np.array(counts, dtype=float)
+        return k + 0.5 * np.sign(k)
+
+    gyr = middle([[m.xgyro, m.ygyro, m.zgyro] for m in rows]) * 1e-3  # mrad/s
+    acc = middle([[m.xacc, m.yacc, m.zacc] for m in rows]) * 9.80665e-3  # mG
+    mag = middle([[m.xmag, m.ymag, m.zmag] for m in rows]) * 1e-3  # mGauss
     start = rows[0]._timestamp - 1.0
     att = [m for m in att if m._timestamp >= start]
     t_ref = np.array([m.time_boot_ms for m in att]) / 1e3

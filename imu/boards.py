@@ -56,7 +56,7 @@ class BoardProfile:
     accel_saturation: int | None
     mag_overflow: int | None  # count that means "overflow" for an axis
     #: The integers are the sensor's own counts, noisy in their last bits, so a reading
-    #: repeated on all six axes is a stuck sensor. ArduPilot's are filtered and rounded
+    #: repeated on all six axes is a stuck sensor. ArduPilot's are filtered and truncated
     #: to mG / mrad/s: a quiet board (or a simulator at rest) repeats them honestly.
     sensor_counts: bool = True
     #: The sender made its integers from a float by C's conversion, which truncates

@@ -205,6 +205,19 @@ def to_rotvec(q: np.ndarray) -> np.ndarray:
     return vec * k
 
 
+def bracket(t_src: np.ndarray, t: np.ndarray, max_gap: float
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each time in ``t``, into sorted ``t_src`` (2 samples at least): the index of
+    the sample at or before it, the fraction (0..1) of the way to the next one, and
+    whether it lies within ``t_src``'s span between two samples at most ``max_gap``
+    apart (elsewhere the other two are meaningless)."""
+    i0 = np.clip(np.searchsorted(t_src, t, side="right") - 1, 0, len(t_src) - 2)
+    t0, t1 = t_src[i0], t_src[i0 + 1]
+    inside = (t >= t_src[0]) & (t <= t_src[-1]) & (t1 - t0 <= max_gap)
+    frac = np.clip((t - t0) / np.maximum(t1 - t0, 1e-12), 0.0, 1.0)
+    return i0, frac, inside
+
+
 def slerp(q0: np.ndarray, q1: np.ndarray, frac: np.ndarray) -> np.ndarray:
     """The attitude ``frac`` (0..1) of the way from ``q0`` to ``q1``, row by row:
     ``q0 ⊗ exp(frac · log(q0* ⊗ q1))``, the shortest rotation at a constant rate."""

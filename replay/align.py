@@ -33,10 +33,7 @@ def reference_at(ref: Reference, t: np.ndarray, method: str = "slerp",
     if ref.t.shape[0] == 1:
         out[np.abs(t - ref.t[0]) <= max_gap / 2] = ref.q[0]
         return out
-    i0 = np.clip(np.searchsorted(ref.t, t, side="right") - 1, 0, ref.t.shape[0] - 2)
-    t0, t1 = ref.t[i0], ref.t[i0 + 1]
-    inside = (t >= ref.t[0]) & (t <= ref.t[-1]) & (t1 - t0 <= max_gap)
-    frac = np.clip((t - t0) / (t1 - t0), 0.0, 1.0)
+    i0, frac, inside = Q.bracket(ref.t, t, max_gap)
     q0, q1 = ref.q[i0], ref.q[i0 + 1]
     q = (np.where((frac < 0.5)[:, None], q0, q1) if method == "nearest"
          else Q.slerp(q0, q1, frac))

@@ -63,11 +63,8 @@ def pairs_at_shift(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
     its nearest sample, up to 10 ms away in a turn, would charge it with an error that is
     the pairing's (as the replay does, ``replay.align.reference_at``)."""
     query = t_ref + shift
-    i0 = np.clip(np.searchsorted(t_est, query, side="right") - 1, 0, len(t_est) - 2)
-    t0, t1 = t_est[i0], t_est[i0 + 1]
-    ok = (query >= t_est[0]) & (query <= t_est[-1]) & (t1 - t0 <= max_gap)
-    i0, t0, t1 = i0[ok], t0[ok], t1[ok]
-    frac = np.clip((query[ok] - t0) / np.maximum(t1 - t0, 1e-12), 0.0, 1.0)
+    i0, frac, ok = Q.bracket(t_est, query, max_gap)
+    i0, frac = i0[ok], frac[ok]
     return Q.slerp(q_est[i0], q_est[i0 + 1], frac), q_ref[ok]
 
 

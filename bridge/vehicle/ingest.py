@@ -75,7 +75,8 @@ class _RawMap(NamedTuple):
     """One board profile's RAW_IMU map (see Ingest._raw_map)."""
 
     profile: BoardProfile
-    matrix: np.ndarray  # 9x10
+    linear: np.ndarray  # 9x9: the message's nine numbers -> calibrated FRD SI
+    offset: np.ndarray  # 9: the calibration offsets
     gyr_max: float  # counts
     acc_max: float
 
@@ -134,8 +135,8 @@ class Ingest:
         self.sources: dict[SourceKey, SourceState] = {}
 
     def _raw_map(self, profile: BoardProfile) -> _RawMap:
-        """All nine RAW_IMU integers (+1) -> calibrated FRD SI in one multiply (one numpy
-        call per sample), and the profile's range limits in its counts."""
+        """All nine RAW_IMU integers -> calibrated FRD SI in one multiply and one add
+        per sample), and the profile's range limits in its counts."""
         cached = self._raw_maps.get(profile.name)
         if cached is not None:
             return cached
@@ -143,13 +144,13 @@ class Ingest:
         acc_m, acc_c = self.calibration.affine("accel")
         mag_m, mag_c = self.calibration.affine("mag")
         raw_axes = self.rotation @ profile.to_frd
-        m = np.zeros((9, 10))
+        m = np.zeros((9, 9))
         m[0:3, 0:3] = gyr_m @ raw_axes * profile.gyro_scale
         m[3:6, 3:6] = acc_m @ raw_axes * profile.accel_scale
         m[6:9, 6:9] = mag_m @ raw_axes * profile.mag_scale
-        m[:, 9] = np.concatenate([gyr_c, acc_c, mag_c])
         made = self._raw_maps[profile.name] = _RawMap(
-            profile, m, self.limits.gyro_rad_s / profile.gyro_scale,
+            profile, m, np.concatenate([gyr_c, acc_c, mag_c]),
+            self.limits.gyro_rad_s / profile.gyro_scale,
             self.limits.accel_m_s2 / profile.accel_scale)
         return made
 
@@ -224,7 +225,7 @@ class Ingest:
         mag_overflow = p.mag_overflow is not None and p.mag_overflow in mg
         raw = g + a
         numbers = p.centred(np.array(raw + mg, dtype=float))  # half steps, if truncated
-        si = raw_map.matrix[:, :9] @ numbers + raw_map.matrix[:, 9]
+        si = raw_map.linear @ numbers + raw_map.offset
         acc = np.full(3, np.nan) if acc_clipped else si[3:6]
         mag = None if mg == (0, 0, 0) or mag_overflow else si[6:9]
         flags: tuple[str, ...] = ()

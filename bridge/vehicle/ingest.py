@@ -136,7 +136,7 @@ class Ingest:
 
     def _raw_map(self, profile: BoardProfile) -> _RawMap:
         """All nine RAW_IMU integers -> calibrated FRD SI in one multiply and one add
-        per sample), and the profile's range limits in its counts."""
+        per sample, and the profile's range limits in its counts."""
         cached = self._raw_maps.get(profile.name)
         if cached is not None:
             return cached

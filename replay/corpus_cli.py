@@ -17,7 +17,6 @@ take the corpus meaning (the summary, the per-log table, the summary page).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import sys
 import time
 from pathlib import Path
@@ -27,7 +26,7 @@ from estimators.spec import EstimatorSpec
 
 from .cli import INTERRUPTED, compared_references, require_module
 from .corpus_summary import CorpusSummary, summarise
-from .corpus_task import FAILED, ReplayOptions, absolute, crashed, replay_log
+from .corpus_task import FAILED, ReplayOptions, absolute, crashed, replay_log, warm
 from .dataset import ReplayInputError
 from .logpaths import expand
 from .parallel import run
@@ -75,17 +74,6 @@ def options_from(args: argparse.Namespace) -> ReplayOptions:
                          compared_references(args))
 
 
-def _warm(options: ReplayOptions) -> None:
-    """Load the estimators' compiled kernels once before the pool forks (every worker
-    inherits them) on a second of synthetic data."""
-    from .evaluate import evaluate
-    from .synthetic import SyntheticConfig, generate
-
-    with contextlib.suppress(Exception):  # an optimisation; tasks report real problems
-        evaluate(generate(SyntheticConfig(duration_s=1.0)), list(options.specs),
-                 smooth=options.smooth)
-
-
 def _size(path: Path) -> int:
     """Bytes on disk: a log's work is about proportional to it (0 when unreadable)."""
     try:
@@ -113,7 +101,8 @@ def replay_corpus(args: argparse.Namespace) -> int:
     try:
         outcome = run(replay_log, tasks, on_crash=lambda task, why: crashed(task[0], why),
                       jobs=args.jobs, scheduler=args.scheduler, on_done=done,
-                      warm=lambda: _warm(options), order=largest_first)
+                      warm=lambda: warm(options.specs, options.smooth),
+                      order=largest_first)
     except (ReplayInputError, ValueError) as exc:  # the cluster: no Dask, no scheduler
         return _fail(exc)
     seconds = time.perf_counter() - began

@@ -116,6 +116,26 @@ def replay_log(display: str, load_path: str, options: ReplayOptions) -> dict:
     return clean(entry)
 
 
+def warm(specs: tuple[EstimatorSpec, ...] = (), smooth: bool = True) -> None:
+    """Make a worker ready for its first log: import the readers (pymavlink's dialect,
+    pyulog) and load the estimators' compiled kernels (``specs``, default: replay's
+    defaults; and the smoother's) by scoring a second of synthetic data. Loading them
+    from numba's on-disk cache takes about a second, which otherwise lands in whichever
+    log a fresh worker gets first. Never raises: it only saves time, and a real problem
+    shows in the tasks that follow."""
+    from .evaluate import default_specs, evaluate
+    from .synthetic import SyntheticConfig, generate
+
+    with contextlib.suppress(Exception):
+        from pymavlink.dialects.v20 import ardupilotmega  # noqa: F401  (the tlog reader's)
+        from pyulog import ULog  # noqa: F401  (the ULog reader's)
+
+        from .readers import load  # noqa: F401
+    with contextlib.suppress(Exception):
+        evaluate(generate(SyntheticConfig(duration_s=1.0)), list(specs or default_specs()),
+                 smooth=smooth)
+
+
 def _scores_json(scores: dict) -> dict:
     return {label: {k: v for k, v in s.as_json().items() if k not in TIMING_FIELDS}
             for label, s in scores.items()}

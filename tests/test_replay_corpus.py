@@ -419,12 +419,44 @@ def test_two_local_processes_give_the_one_core_summary(corpus, one_core, tmp_pat
     assert stdout2.split("json:")[0] == stdout.split("json:")[0]
 
 
+#: README's worker line: ``dask worker ... --preload replay.dask_preload``
+PRELOAD = {"distributed.worker.preload": ["replay.dask_preload"]}
+
+
 @pytest.fixture(scope="module")
 def dask_cluster():
     distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=":0") as c:
+    import dask
+
+    with dask.config.set(PRELOAD), distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as c:
         yield c.scheduler_address
+
+
+def _worker_readiness() -> dict:
+    """What a worker has loaded (run on the worker by Client.run)."""
+    import sys
+
+    import estimators.smoother
+
+    preload = sys.modules.get("replay.dask_preload")
+    return {"warmed_s": preload.warmed_seconds if preload else None,
+            "smoother": estimators.smoother._tapped is not None,
+            "readers": {"pyulog", "pymavlink.dialects.v20.ardupilotmega"} <= set(sys.modules)}
+
+
+@pytest.mark.xdist_group("dask")
+def test_preloaded_workers_are_ready_before_their_first_log(dask_cluster):
+    """The preload ran in every worker as it started (only dask_setup sets warmed_s):
+    the readers are imported and the kernels, the smoother's too, are loaded."""
+    from distributed import Client
+
+    with Client(dask_cluster, set_as_default=False) as client:
+        states = client.run(_worker_readiness)
+    assert len(states) == 2
+    for state in states.values():
+        assert state["warmed_s"] is not None and state["warmed_s"] > 0, states
+        assert state["smoother"] and state["readers"], states
 
 
 @pytest.mark.xdist_group("dask")

@@ -260,3 +260,55 @@ async def test_the_service_says_what_happens(caplog):
     assert said("vehicle 1: IMU data resumed after a gap (board time 50.", logging.WARNING)
     assert said("vehicle 1 rebooted (board time went back from", logging.WARNING), text
     v.close()
+
+
+@async_test
+async def test_the_vehicles_ids_from_another_address_are_refused(caplog):
+    """A forger on another socket sends with the vehicle's own system and component id
+    while the vehicle talks: its gyro (200 °/s) never reaches the estimate, its
+    heartbeats do not take the stream requests, and it is counted and warned about.
+    Once the vehicle's address has been silent for the source timeout, a new address is
+    the vehicle's own (an autopilot restarted on another port), and that is logged."""
+    caplog.set_level(logging.WARNING, logger="bridge")
+    q0 = euler_q(5.0, -5.0, 45.0)
+    spin = np.radians([0.0, 200.0, 0.0])
+    async with running_bridge(out_rate=0.0, estimators=["mahony"],
+                              source_timeout_s=0.6) as bridge:
+        vehicle, forger = MavSender(bridge.port), MavSender(bridge.port)
+        await vehicle.start()
+        await forger.start()
+        vehicle.send(autopilot_heartbeat())
+        t = await send_static(vehicle, q0, 0.5, t0_us=10_000_000)
+        for i in range(500):  # the forger's samples 1 ms after each of the vehicle's
+            vehicle.send(raw_imu(t, q0))
+            forger.send(raw_imu(t + 1000, q0, spin))
+            if i % 100 == 0:
+                vehicle.send(autopilot_heartbeat())
+                forger.send(autopilot_heartbeat())
+            t += 2000
+            if i % 25 == 24:
+                await asyncio.sleep(0.05)
+        last_ms = (t - 2000) // 1000
+        await wait_until(lambda: any(m.time_boot_ms == last_ms for m in
+                                     vehicle.listener.of_type("ATTITUDE_QUATERNION")[-5:]))
+        bridge.publish_status()
+        refused = bridge.last_status[1]["refused"]["other_address"]
+        forged_commands = len(forger.listener.of_type("COMMAND_LONG"))
+        # the vehicle goes silent; then its ids come from the other socket only
+        await asyncio.sleep(1.0)
+        await send_static(forger, q0, 0.6, t0_us=t + 1_000_000)
+        bridge.publish_status()
+        refused_after_move = bridge.last_status[1]["refused"]["other_address"]
+    msgs = [m for m in vehicle.listener.of_type("ATTITUDE_QUATERNION")
+            if m.time_boot_ms <= last_ms]
+    assert len(msgs) >= 700
+    assert np.max(angle_deg(attitude_of(msgs[5:]), q0)) < 1.0
+    assert refused == 500 + 5  # every forged sample and heartbeat
+    assert vehicle.listener.of_type("COMMAND_LONG") and forged_commands == 0
+    assert refused_after_move == refused
+    text = [r.getMessage() for r in caplog.records]
+    assert any("vehicle 1: its system and component id also come from 127.0.0.1:" in m
+               for m in text), text
+    assert any("vehicle 1 now talks from 127.0.0.1:" in m for m in text), text
+    vehicle.close()
+    forger.close()

@@ -74,6 +74,9 @@ class MessageRouter:
         if vehicle is None:
             return
         now = time.monotonic()
+        if not self._from_where_it_talks(vehicle, compid, msg_id, link, now):
+            vehicle.refused["other_address"] += 1
+            return
         vehicle.last_heard = now
         vehicle.observe_sequence(compid, header.seq)
         if msg_id in IMU_MESSAGE_IDS:
@@ -100,6 +103,16 @@ class MessageRouter:
                 return
             vehicle.flight.on_extended_sys_state(now, msg.landed_state)
             self._flight_state(vehicle)
+
+    def _from_where_it_talks(self, vehicle: Vehicle, compid: int, msg_id: int, link: Link,
+                             now: float) -> bool:
+        """The vehicle's autopilot component only from its one link and address
+        (bridge.vehicle.address); a truth source the user named may be elsewhere."""
+        if compid != vehicle.reference_compid():
+            return True
+        if self.cfg.truth is not None and msg_id in TRUTH_MESSAGE_IDS:
+            return True
+        return vehicle.talks_from.admits(link, link.last_addr, now, self.cfg.source_timeout_s)
 
     def _vehicle_attitude(self, vehicle: Vehicle, msg: MAVLinkMessage, msg_id: int,
                           compid: int) -> None:

@@ -34,6 +34,7 @@ from typing import Any
 from imu.flight_state import FlightStateTracker
 
 from ..wire.sequence import SequenceTracker
+from .address import AddressLock
 from .aiding import VelocityAiding
 from .clock import ArrivalClock
 from .declination import Declination
@@ -51,7 +52,8 @@ CONFIGURED, HEARTBEAT, PROVISIONAL = "configured", "heartbeat", "imu"
 #: Counters of what one vehicle's traffic had refused.
 #: IMU samples of other ids, and none of the one --imu-id asks, before that is told.
 WRONG_IMU_SAMPLES = 500
-REFUSALS = ("not_primary", "other_component", "refs_refused", "components_untracked")
+REFUSALS = ("not_primary", "other_component", "refs_refused", "components_untracked",
+            "other_address")
 
 
 @dataclass
@@ -67,6 +69,8 @@ class Vehicle:
     last_heartbeat: float = 0.0  # monotonic
     link: Any = None  # where it talks from: the link and address of its last message
     address: tuple | None = None
+    #: the one link and address its autopilot may talk from (others refused)
+    talks_from: AddressLock = field(default_factory=AddressLock)
     primary: SourceKey | None = None
     primary_heard: float = 0.0  # monotonic time of the primary's last sample
     source_switches: int = 0
@@ -99,6 +103,7 @@ class Vehicle:
 
     def __post_init__(self) -> None:
         self.flight.label = f"vehicle {self.sysid}"
+        self.talks_from.label = f"vehicle {self.sysid}"
 
     def references(self) -> References:
         """The comparison references, created on first use (they are the bulk of the

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -312,3 +313,39 @@ async def test_the_vehicles_ids_from_another_address_are_refused(caplog):
     assert any("vehicle 1 now talks from 127.0.0.1:" in m for m in text), text
     vehicle.close()
     forger.close()
+
+
+@async_test
+async def test_references_that_are_no_attitude_are_refused_and_counted():
+    """A zero quaternion as the truth or as the vehicle's own attitude, and a NaN
+    ATTITUDE, are no attitude: counted (refused.refs_invalid), never compared (they
+    scored 180° of inclination and leaked numpy's divide warning), while the valid
+    truth between them is still scored."""
+    q0 = euler_q(5.0, 5.0, 0.0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        async with running_bridge(estimators=["quaternion"], window_s=2.0) as bridge:
+            v = MavSender(bridge.port)
+            await v.start()
+            for i in range(1000):
+                t_us = 1_000_000 + i * 2000
+                v.send(raw_imu(t_us, q0))
+                if i % 5 == 0:
+                    q_truth = q0 if i % 10 == 0 else [0.0, 0.0, 0.0, 0.0]
+                    v.send(mavlink.MAVLink_hil_state_quaternion_message(
+                        t_us, q_truth, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0))
+                    v.send(mavlink.MAVLink_attitude_quaternion_message(
+                        t_us // 1000, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, [1, 0, 0, 0]))
+                    v.send(mavlink.MAVLink_attitude_message(
+                        t_us // 1000, math.nan, 0.0, 0.0, 0, 0, 0))
+                if i % 25 == 24:
+                    await asyncio.sleep(0.05)
+            await wait_until(lambda: accepted(bridge) == 1000)
+            bridge.publish_status()
+            status = bridge.last_status[1]
+    assert status["refused"]["refs_invalid"] == 100 + 200 + 200
+    truth = status["compare"]["truth"]["quaternion"]
+    assert truth["inclination_deg"] < 0.5 and truth["samples"] > 0
+    assert "vehicle" not in status["compare"] or not status["compare"]["vehicle"]
+    assert not [w for w in caught if issubclass(w.category, RuntimeWarning)], caught
+    v.close()

@@ -120,11 +120,12 @@ class MessageRouter:
         if compid != vehicle.reference_compid():
             vehicle.refused["refs_refused"] += 1
         elif msg_id == ID_ATTITUDE_QUATERNION:
-            vehicle.references().add_vehicle_quaternion(
-                msg.time_boot_ms * 1e-3, np.array([msg.q1, msg.q2, msg.q3, msg.q4]))
-        else:
-            vehicle.references().add_vehicle_euler(msg.time_boot_ms * 1e-3, msg.roll,
-                                                   msg.pitch, msg.yaw)
+            if not vehicle.references().add_vehicle_quaternion(
+                    msg.time_boot_ms * 1e-3, np.array([msg.q1, msg.q2, msg.q3, msg.q4])):
+                vehicle.refused["refs_invalid"] += 1
+        elif not vehicle.references().add_vehicle_euler(msg.time_boot_ms * 1e-3, msg.roll,
+                                                        msg.pitch, msg.yaw):
+            vehicle.refused["refs_invalid"] += 1
 
     def _velocity(self, vehicle: Vehicle, msg: MAVLinkMessage, msg_id: int, compid: int,
                   arrival: float) -> None:
@@ -164,8 +165,8 @@ class MessageRouter:
             stamp, q = msg.time_usec, np.array(msg.attitude_quaternion)
             self._position(vehicle, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
         t = stamp * 1e-6 if stamp > 0 else vehicle.arrival_clock.board_time(arrival)
-        if t is not None and np.all(np.isfinite(q)):
-            vehicle.references().add_truth(t, q)
+        if t is not None and not vehicle.references().add_truth(t, q):
+            vehicle.refused["refs_invalid"] += 1
 
     def _flight_state(self, vehicle: Vehicle) -> None:
         """Pass a change of the vehicle's flight state on to its estimators."""

@@ -52,8 +52,8 @@ CONFIGURED, HEARTBEAT, PROVISIONAL = "configured", "heartbeat", "imu"
 #: Counters of what one vehicle's traffic had refused.
 #: IMU samples of other ids, and none of the one --imu-id asks, before that is told.
 WRONG_IMU_SAMPLES = 500
-REFUSALS = ("not_primary", "other_component", "refs_refused", "components_untracked",
-            "other_address")
+REFUSALS = ("not_primary", "other_component", "refs_refused", "refs_invalid",
+            "components_untracked", "other_address")
 
 
 @dataclass

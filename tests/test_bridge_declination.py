@@ -4,6 +4,7 @@ Magnetic Model at the vehicle's position, over real UDP against the emulator."""
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 
 import numpy as np
@@ -14,7 +15,14 @@ import estimators
 from bridge.app.config import BridgeConfig
 from bridge.app.emulator import emulator_config, emulator_declination_deg
 from bridge.app.table import render
-from bridge.vehicle.declination import NONE, OPTION, PARAMETER, WMM, Declination
+from bridge.vehicle.declination import (
+    CONFIRM_FIXES,
+    NONE,
+    OPTION,
+    PARAMETER,
+    WMM,
+    Declination,
+)
 from bridge.wire.mav import mavlink
 from estimators import metrics
 from estimators import quat as Q
@@ -120,6 +128,8 @@ def test_declination_sources_in_order():
     d.plan(ardupilot)
     assert d.param_to_send(0.0) == "COMPASS_DEC"
     assert d.param_to_send(0.5) is None  # waiting for the answer
+    for _ in range(CONFIRM_FIXES - 1):  # a place counts once fixes in a row agree on it
+        assert not d.on_position(47.397742, 8.545594, 488.0) and d.source == NONE
     assert d.on_position(47.397742, 8.545594, 488.0) and d.source == WMM
     assert not d.on_position(47.3978, 8.5457, 490.0)  # same place: not evaluated again
     assert d.on_param("COMPASS_DEC", math.radians(2.5))  # radians, and it wins
@@ -135,6 +145,29 @@ def test_declination_sources_in_order():
     given.plan(px4)
     assert given.param_to_send(0.0) is None  # the user's value needs no question
     assert not given.on_position(47.4, 8.5, 0.0) and (given.source, given.deg) == (OPTION, -7.0)
+
+
+def test_a_position_flipping_between_two_places_never_moves_the_declination(caplog):
+    """A faulty receiver alternating between Zurich and New Zealand turned the heading
+    by 22° with every fix; and a flood of one bad parameter value logged one warning
+    per message."""
+    caplog.set_level(logging.WARNING, logger="bridge")
+    d = Declination(1)
+    d.plan(mavlink.MAV_AUTOPILOT_PX4)
+    for _ in range(CONFIRM_FIXES):
+        d.on_position(47.397742, 8.545594, 488.0)
+    zurich = d.deg
+    assert d.source == WMM
+    changes = sum(d.on_position(*((-45.0, 170.0) if k % 2 else (47.397742, 8.545594)), 0.0)
+                  for k in range(200))
+    assert changes == 0 and d.deg == zurich
+    for _ in range(CONFIRM_FIXES):  # a real move is taken
+        d.on_position(-45.0, 170.0, 0.0)
+    assert d.deg == pytest.approx(25.5, abs=1.0)
+    for _ in range(1000):
+        assert not d.on_param("EKF2_MAG_DECL", float("nan"))
+    assert d.params_refused == 1000 and d.status()["params_refused"] == 1000
+    assert len([r for r in caplog.records if "is no declination" in r.getMessage()]) == 1
 
 
 def test_set_declination_turns_the_output_and_keeps_the_estimate():

@@ -12,7 +12,9 @@ are in true north. The declination between them is, in order of preference:
 3. the World Magnetic Model (``imu.geomag``, WMM2025, today's date) at the vehicle's
    position (GLOBAL_POSITION_INT, GPS_RAW_INT with a fix, or HIL_STATE_QUATERNION),
    computed again when the vehicle has moved more than ``RECOMPUTE_DEG`` of latitude
-   or longitude;
+   or longitude. A place counts once ``CONFIRM_FIXES`` fixes in a row agree on it: a
+   position that flips between two places (a faulty receiver) would otherwise turn the
+   heading back and forth with each fix;
 4. else 0 (magnetic north reported as true north), shown as ``none``.
 """
 
@@ -38,6 +40,8 @@ PARAMETERS = {mavlink.MAV_AUTOPILOT_PX4: ("EKF2_MAG_DECL", "deg"),
 #: (~50 km; the declination changes by well under 0.1° over such a distance at most
 #: latitudes).
 RECOMPUTE_DEG = 0.5
+#: Consecutive fixes within RECOMPUTE_DEG of each other before a place is used.
+CONFIRM_FIXES = 5
 
 
 @dataclass
@@ -52,6 +56,12 @@ class Declination:
     param: tuple[str, str] | None = None  # (name, unit) to ask the autopilot for
     query: ParamQuery = field(default_factory=ParamQuery)
     wmm_at: tuple[float, float] | None = None  # (lat, lon) of the last WMM evaluation
+    #: a new place not yet confirmed: (lat, lon) of its first fix, fixes agreeing so far
+    candidate: tuple[float, float] | None = None
+    candidate_fixes: int = 0
+    #: repr of the last parameter value refused (warned about once, not per message)
+    refused_value: str | None = None
+    params_refused: int = 0
 
     def __post_init__(self) -> None:
         if self.option_deg is not None:
@@ -76,8 +86,11 @@ class Declination:
             return False
         deg = value if self.param[1] == "deg" else math.degrees(value)
         if not (math.isfinite(deg) and abs(deg) <= 180.0):
-            log.warning("vehicle %d: %s = %r is no declination; not used", self.sysid, name,
-                        value)
+            self.params_refused += 1
+            if repr(value) != self.refused_value:
+                self.refused_value = repr(value)
+                log.warning("vehicle %d: %s = %r is no declination; not used (repeats "
+                            "counted in declination.params_refused)", self.sysid, name, value)
             return False
         if deg == 0.0:
             log.info("vehicle %d: %s is 0 (not set by the autopilot); not used", self.sysid,
@@ -92,9 +105,15 @@ class Declination:
         if not (math.isfinite(lat_deg) and math.isfinite(lon_deg) and abs(lat_deg) <= 90.0
                 and abs(lon_deg) <= 180.0) or (lat_deg == 0.0 and lon_deg == 0.0):
             return False  # (0, 0): the "no position" value
-        if self.wmm_at is not None and abs(lat_deg - self.wmm_at[0]) < RECOMPUTE_DEG and \
-                abs(lon_deg - self.wmm_at[1]) < RECOMPUTE_DEG:
+        if self.wmm_at is not None and _near(self.wmm_at, lat_deg, lon_deg):
+            self.candidate = None
             return False
+        if self.candidate is None or not _near(self.candidate, lat_deg, lon_deg):
+            self.candidate, self.candidate_fixes = (lat_deg, lon_deg), 0
+        self.candidate_fixes += 1
+        if self.candidate_fixes < CONFIRM_FIXES:
+            return False
+        self.candidate = None
         try:
             deg = geomag.declination_deg(lat_deg, lon_deg, alt_m if math.isfinite(alt_m)
                                          else 0.0)
@@ -112,4 +131,9 @@ class Declination:
         return changed
 
     def status(self) -> dict[str, Any]:
-        return {"deg": round(self.deg, 3), "source": self.source, "detail": self.detail}
+        return {"deg": round(self.deg, 3), "source": self.source, "detail": self.detail,
+                "params_refused": self.params_refused}
+
+
+def _near(place: tuple[float, float], lat_deg: float, lon_deg: float) -> bool:
+    return abs(lat_deg - place[0]) < RECOMPUTE_DEG and abs(lon_deg - place[1]) < RECOMPUTE_DEG

@@ -349,3 +349,54 @@ async def test_references_that_are_no_attitude_are_refused_and_counted():
     assert "vehicle" not in status["compare"] or not status["compare"]["vehicle"]
     assert not [w for w in caught if issubclass(w.category, RuntimeWarning)], caught
     v.close()
+
+
+@async_test
+async def test_a_vehicle_over_its_rate_budget_is_told_and_not_counted_as_link_loss(caplog):
+    """The vehicle itself sends faster than --max-source-rate: what the gate refuses is
+    warned about and counted as over budget, not as link loss (its sequence numbers
+    have gaps there only because the bridge refused those datagrams)."""
+    caplog.set_level(logging.WARNING, logger="bridge")
+    q0 = euler_q(5.0, -5.0, 45.0)
+    async with running_bridge(out_rate=0.0, estimators=["mahony"], max_source_rate=400.0,
+                              status_period_s=0.2) as bridge:
+        v = MavSender(bridge.port)
+        await v.start()
+        await send_static(v, q0, 2.0, rate_hz=1000.0, burst=50)
+        await asyncio.sleep(0.5)
+        bridge.publish_status()
+        status = bridge.last_status[1]
+    link, gate = status["link"], status["connection"]["gate"]
+    assert gate["over_budget"] > 500 and link["over_budget"] == gate["over_budget"]
+    assert link["lost"] == 0
+    assert any("refused: over --max-source-rate (400/s per sender), the last from system "
+               "1 component 1" in r.getMessage() for r in caplog.records)
+    v.close()
+
+
+@async_test
+async def test_a_stream_of_unusable_samples_is_not_called_a_lost_link(caplog):
+    """HIGHRES_IMU keeps arriving with a NaN gyro: the warning says the samples are
+    refused and why, not that the link was lost."""
+    caplog.set_level(logging.WARNING, logger="bridge")
+    async with running_bridge(estimators=["mahony"], status_period_s=0.2,
+                              source_timeout_s=0.6) as bridge:
+        v = MavSender(bridge.port)
+        await v.start()
+        v.send(autopilot_heartbeat())
+        for i in range(int(2.2 * 250)):
+            gyro = math.nan if i >= 150 else 0.0
+            v.send(mavlink.MAVLink_highres_imu_message(
+                1_000_000 + i * 4000, 0.0, 0.0, -9.8, gyro, 0.0, 0.0, 0.2, 0.0, 0.4,
+                1013.0, 0.0, 0.0, 25.0, 0x1FFF, 0))
+            if i % 25 == 24:
+                await asyncio.sleep(0.1)
+        await asyncio.sleep(0.3)
+        bridge.publish_status()
+        drops = bridge.last_status[1]["drops"]
+    text = [r.getMessage() for r in caplog.records]
+    assert drops["nonfinite"] >= 300
+    assert any("vehicle 1: IMU messages arrive but none was usable for" in m and
+               "(refused: nonfinite " in m for m in text), text
+    assert not any("link lost" in m for m in text), text
+    v.close()

@@ -107,8 +107,12 @@ class StatusReporter:
             for cause in FLAG_CAUSES:
                 flags[cause] += s.counts[cause]
         seqs = vehicle.sequences.values()
-        link = {"lost": sum(t.lost for t in seqs), "late": sum(t.late for t in seqs),
-                "repeated": sum(t.duplicate for t in seqs)}
+        # datagrams refused over budget never reach the parser: their sequence numbers
+        # are gaps, counted as refused (connection.gate.over_budget), not as link loss
+        over_budget = self.admission.over_budget_of(vehicle.sysid)
+        link = {"lost": max(0, sum(t.lost for t in seqs) - over_budget),
+                "late": sum(t.late for t in seqs),
+                "repeated": sum(t.duplicate for t in seqs), "over_budget": over_budget}
         src = self.pipeline.sources.get(vehicle.primary) if vehicle.primary else None
         return {
             "sysid": vehicle.sysid, "time_unix": round(time.time(), 3),

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 
+from ..vehicle.imu_sample import DROP_CAUSES
 from ..vehicle.ingest import Ingest
 from ..vehicle.vehicle import Vehicle
 
@@ -22,6 +23,7 @@ class StreamWatch:
         self.timeout_s = source_timeout_s
         self.silent_since: dict[int, float] = {}  # sysid -> last_imu when it went quiet
         self._told: dict[int, str] = {}  # sysid -> IMU message last announced
+        self._drops_seen: dict[int, dict[str, int]] = {}  # sysid -> primary's drops then
 
     def online(self, vehicle: Vehicle) -> bool:
         """Its attitude is being estimated now (data seen and not silent)."""
@@ -35,14 +37,31 @@ class StreamWatch:
             self._announce_stream(vehicle)
             silent = now - vehicle.last_imu
             since = self.silent_since.get(sysid)
+            refused = self._new_drops(vehicle)
             if silent >= self.timeout_s and since is None:
                 self.silent_since[sysid] = vehicle.last_imu
-                log.warning("vehicle %d: no IMU data for %.0f s (link lost, or the vehicle "
-                            "stopped sending)", sysid, silent)
+                if refused:
+                    log.warning("vehicle %d: IMU messages arrive but none was usable for "
+                                "%.0f s (refused: %s): the sensor, its driver or the sender "
+                                "is at fault, not the link", sysid, silent,
+                                ", ".join(f"{c} {n}" for c, n in refused.items()))
+                else:
+                    log.warning("vehicle %d: no IMU data for %.0f s (link lost, or the "
+                                "vehicle stopped sending)", sysid, silent)
             elif silent < self.timeout_s and since is not None:
                 del self.silent_since[sysid]
                 log.info("vehicle %d: IMU data again after %.1f s", sysid,
                          vehicle.last_imu - since)
+
+    def _new_drops(self, vehicle: Vehicle) -> dict[str, int]:
+        """Samples of the vehicle's IMU stream refused since the last check, by cause."""
+        state = self.ingest.sources.get(vehicle.primary) if vehicle.primary else None
+        if state is None:
+            return {}
+        now = {c: state.counts[c] for c in DROP_CAUSES}
+        before = self._drops_seen.get(vehicle.sysid, now)
+        self._drops_seen[vehicle.sysid] = now
+        return {c: n - before.get(c, 0) for c, n in now.items() if n > before.get(c, 0)}
 
     def _announce_stream(self, vehicle: Vehicle) -> None:
         """Once per stream: which message the estimate comes from, at what rate."""

@@ -34,6 +34,7 @@ once the sampled refusals fall below the flood rate.
 
 from __future__ import annotations
 
+import logging
 import time
 from array import array
 from collections.abc import Callable
@@ -50,6 +51,10 @@ OTHER_RATE, OTHER_BURST = 20.0, 20.0
 FLOOD_RATE = 2000.0
 FLOOD_WINDOW_S = 0.1
 FILTER_HOLD_S = 10.0
+#: At most one warning about senders over their budget in this long [s].
+OVER_BUDGET_WARN_S = 10.0
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -94,6 +99,12 @@ class Admission:
         self._other_tokens = array("d", [OTHER_BURST]) * 256  # by sysid
         self._other_stamp = array("d", [now]) * 256
         self._junk = (JUNK_BURST, now)
+        #: datagrams refused over budget, by sysid << 8 | compid: they never reach the
+        #: parser, so the sender's sequence numbers show them as gaps (not link loss)
+        self.over_budget_by = array("q", [0]) * 65536
+        self._over_budget_told = 0
+        self._over_budget_warned = -OVER_BUDGET_WARN_S
+        self._last_over_budget = 0
         self._window_start = now
         self._window_refused = 0
         self._filter_since = 0.0
@@ -129,8 +140,26 @@ class Admission:
             self._filter_since = now
             self._sampled_since_tick = 0
 
+    def over_budget_of(self, sysid: int) -> int:
+        """Datagrams of this system id (any component) refused over budget."""
+        return sum(self.over_budget_by[sysid << 8:(sysid + 1) << 8])
+
+    def _warn_over_budget(self) -> None:
+        """A sender over its budget is told about (at most every OVER_BUDGET_WARN_S)."""
+        now = time.monotonic()
+        new = self.stats.over_budget - self._over_budget_told
+        if new <= 0 or now - self._over_budget_warned < OVER_BUDGET_WARN_S:
+            return
+        key = self._last_over_budget
+        log.warning("%d datagram(s) refused: over --max-source-rate (%g/s per sender), the "
+                    "last from system %d component %d (raise it for a sender this fast)",
+                    new, self.rate, key >> 8, key & 0xFF)
+        self._over_budget_told, self._over_budget_warned = self.stats.over_budget, now
+
     def tick(self, elapsed: float) -> None:
-        """Called about once a second: take the kernel filter off once the flood ended."""
+        """Called about once a second: say if a sender went over budget; take the kernel
+        filter off once the flood ended."""
+        self._warn_over_budget()
         if not self.stats.kernel_filter or elapsed <= 0:
             self._window_start, self._window_refused = time.monotonic(), 0
             return
@@ -167,8 +196,12 @@ class Admission:
                               OTHER_BURST)
         if not self.budget:
             return True
-        return self._take(sysid << 8 | compid, self._tokens, self._stamp, self.rate,
-                          self.burst)
+        key = sysid << 8 | compid
+        if self._take(key, self._tokens, self._stamp, self.rate, self.burst):
+            return True
+        self.over_budget_by[key] += 1
+        self._last_over_budget = key
+        return False
 
     def _take(self, key: int, tokens: array, stamps: array, rate: float,
               burst: float) -> bool:

@@ -24,15 +24,36 @@ def ardupilot_steps(n: int) -> np.ndarray:
 
 
 def test_the_imu_rate_is_the_mean_with_the_jitter_beside_it():
-    neg = StreamNegotiation(1, 333.3)
+    neg = StreamNegotiation(1, 320.0)  # 300 Hz is within 10 % of it: no warning due
     neg.start(ARDUPILOT)
+    assert neg.next_send(0.0) is not None
     neg.on_ack(mavlink.MAV_RESULT_ACCEPTED, 0.0)
+    assert neg.state == "accepted"  # the rate is judged only once the stream is settled
     for t in ardupilot_steps(600):
         neg.observe(mavlink.MAVLINK_MSG_ID_RAW_IMU, float(t))
     status = neg.status()
     assert status["achieved_hz"] == pytest.approx(300.0, rel=0.01)  # 3 per 10 ms
     assert status["jitter_ms"] == pytest.approx(1.18, abs=0.01)  # std of 2.5/2.5/5 ms
     assert not status["below_request"]  # the median step (2.5 ms) would say 400 Hz
+
+
+@pytest.mark.parametrize("refused_between", [0, 1])
+def test_a_slow_rate_from_refused_samples_does_not_blame_the_autopilot(refused_between,
+                                                                       caplog):
+    """250 Hz asked, 125 Hz accepted: when the other half arrived and was refused here
+    (stamps jumping, say) the warning says so instead of sending the user to the
+    autopilot's rate settings."""
+    neg = StreamNegotiation(1, 250.0)
+    neg.start(PX4)
+    assert neg.next_send(0.0) is not None
+    neg.on_ack(mavlink.MAV_RESULT_ACCEPTED, 0.0)
+    for k in range(600):
+        neg.observe(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, k * 0.008)
+        neg.refused(refused_between)
+    warned = [r.getMessage() for r in caplog.records if "below the 250 Hz asked" in r.getMessage()]
+    assert len(warned) == 1 and neg.status()["below_request"]
+    assert ("50% of its recent samples were refused here" in warned[0]) == bool(refused_between)
+    assert ("IMU_INTEG_RATE" in warned[0]) != bool(refused_between)
 
 
 def test_a_replayed_recording_has_the_mean_rate_and_its_jitter():

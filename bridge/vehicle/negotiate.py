@@ -89,6 +89,9 @@ ACK_TIMEOUT_S = 1.0
 MAX_TRIES = 3
 #: Achieved below this fraction of the requested rate: logged as a shortfall.
 RATE_SHORTFALL = 0.9
+#: Share of the primary stream's recent messages refused here above which a slow rate
+#: is put down to those refusals rather than to the sender (see StreamNegotiation).
+REFUSED_SHARE = 0.05
 RATE_JUDGED_AFTER_S = 1.0  # board time of samples before the rate is judged
 _RATE_STEPS = 64  # mean rate and jitter over this many recent time steps
 
@@ -197,6 +200,8 @@ class StreamNegotiation:
     _judge_from: float | None = None  # board time from which the rate is judged
     _short: bool = False  # a shortfall has been logged (and not recovered)
     _msg_observed: int | None = None
+    #: of the primary stream's recent messages, accepted (True) or refused here (False)
+    _fates: deque = field(default_factory=lambda: deque(maxlen=_RATE_STEPS))
 
     # --- plan -----------------------------------------------------------------------
     def start(self, autopilot: int) -> None:
@@ -332,8 +337,10 @@ class StreamNegotiation:
         if msg_id != self._msg_observed:
             self._msg_observed = msg_id
             self._steps.clear()
+            self._fates.clear()
             self._last_t = None
             self._judge_from = None
+        self._fates.append(True)
         if self._last_t is not None:
             step = t - self._last_t
             if 0.0 < step < 1.0:  # longer: an outage, not a rate
@@ -346,6 +353,17 @@ class StreamNegotiation:
             self._judge_from = t + RATE_JUDGED_AFTER_S
         elif t >= self._judge_from and self.state not in (WAITING, ASKING):
             self._judge()
+
+    def refused(self, count: int) -> None:
+        """``count`` messages of the primary stream were refused here (jumping, backwards
+        or duplicated stamps, unusable values): they lower the accepted rate, and a
+        warning about it must not send the user to the autopilot's settings."""
+        self._fates.extend([False] * min(count, _RATE_STEPS))
+
+    @property
+    def refused_share(self) -> float:
+        """Share of the primary stream's recent messages refused here."""
+        return self._fates.count(False) / len(self._fates) if self._fates else 0.0
 
     @property
     def achieved_hz(self) -> float | None:
@@ -368,8 +386,13 @@ class StreamNegotiation:
         name = mavlink.mavlink_map[self._msg_observed].msgname
         short = achieved < RATE_SHORTFALL * self.asked_hz
         if short and not self._short:
+            share = self.refused_share
+            hint = (f"; {share:.0%} of its recent samples were refused here (drops in the "
+                    f"status: stamps jumping, going back or repeated, unusable values), "
+                    f"not missing from the stream" if share > REFUSED_SHARE
+                    else _rate_hint(self.autopilot))
             log.warning("vehicle %d: IMU %s at %.0f Hz, below the %.4g Hz asked%s",
-                        self.sysid, name, achieved, self.asked_hz, _rate_hint(self.autopilot))
+                        self.sysid, name, achieved, self.asked_hz, hint)
         elif self._short and not short:
             log.info("vehicle %d: IMU %s now at %.0f Hz", self.sysid, name, achieved)
         self._short = short

@@ -20,6 +20,7 @@ from bridge_support import async_test
 from bridge.app.cli import main
 from bridge.app.config import BridgeConfig
 from bridge.app.service import BridgeService
+from bridge.vehicle.declination import CONFIRM_FIXES
 from estimators import quat as Q
 from hil import Emulator, EmulatorConfig
 
@@ -80,9 +81,11 @@ async def test_recording_replays_to_what_the_bridge_sent(tmp_path):
     t_board = table[:, names.index("t")] + imu[0].time_usec * 1e-6
     q_replay = table[:, [names.index(f"mahony.q{c}") for c in "wxyz"]]
     at = {round(t * 1e3): i for i, t in enumerate(t_board)}
-    # The bridge learns the declination from the first position (in the truth message)
-    # and turns its output then; the replay knows it from the start.
-    located_ms = min(m.time_usec for m in frames if m.get_type() == "HIL_STATE_QUATERNION") / 1e3
+    # The bridge learns the declination from the position (in the truth message), once
+    # CONFIRM_FIXES fixes agree on it, and turns its output then; the replay knows it
+    # from the start.
+    located_ms = sorted(m.time_usec for m in frames
+                        if m.get_type() == "HIL_STATE_QUATERNION")[CONFIRM_FIXES - 1] / 1e3
     pairs = [(np.array([m.q1, m.q2, m.q3, m.q4]), q_replay[at[m.time_boot_ms]])
              for m in sent if m.time_boot_ms in at and m.time_boot_ms > located_ms]
     assert len(pairs) > 0.95 * len(sent)

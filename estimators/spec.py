@@ -97,7 +97,7 @@ class EstimatorSpec:
             if not sep or not key.strip():
                 raise ValueError(f"bad estimator parameter {item!r} in {text!r}; use k=v "
                                  f"(valid keys for {name}: {user_param_names(est_cls)})")
-            key, parsed = _internal(est_cls, key.strip(), _parse_value(value))
+            key, parsed = to_internal(est_cls, key.strip(), _parse_value(value))
             if key in params:
                 raise ValueError(f"estimator parameter {key!r} given twice in {text!r}")
             params[key] = parsed
@@ -142,7 +142,7 @@ def user_param_names(est_cls: type[Estimator]) -> list[str]:
             for n in ((name, aliases[name]) if name in aliases else (name,))]
 
 
-def _internal(est_cls: type[Estimator], key: str, value: ParamValue
+def to_internal(est_cls: type[Estimator], key: str, value: ParamValue
               ) -> tuple[str, ParamValue]:
     """A user-surface parameter -> (library name, value in radians)."""
     for name, alias in angle_params(est_cls).items():

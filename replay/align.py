@@ -17,6 +17,10 @@ from .dataset import Reference
 
 DEFAULT_MAX_GAP_S = 1.0
 METHODS = ("slerp", "nearest")
+#: More lag-grid points per IMU sample than this: the scored span is mostly time gap (a
+#: clock that jumped), and gridding it would take memory and time without bound.
+MAX_GRID_PER_SAMPLE = 4
+GAP_STEPS = 10  # a step between scored samples longer than this many IMU steps is a gap
 
 
 def reference_at(ref: Reference, t: np.ndarray, method: str = "slerp",
@@ -79,11 +83,12 @@ def measure_lag(t: np.ndarray, q_est: np.ndarray, q_ref: np.ndarray,
     nan = float("nan")
     if ok.sum() < 16:
         return nan, "fewer than 16 scored samples"
-    ts = t[ok]
     step = float(np.median(np.diff(t)))
+    ok, span = _gridded_span(t, ok, step)
+    ts = t[ok]
     grid = np.arange(ts[0], ts[-1], step)
     if grid.shape[0] < 16:
-        return nan, "scored span shorter than 16 IMU steps"
+        return nan, f"{span} shorter than 16 IMU steps"
     est = np.stack([np.interp(grid, ts, a_est[ok, k]) for k in range(3)], axis=1)
     ref = np.stack([np.interp(grid, ts, a_ref[ok, k]) for k in range(3)], axis=1)
     est, ref = est - est.mean(axis=0), ref - ref.mean(axis=0)
@@ -122,3 +127,23 @@ def measure_lag(t: np.ndarray, q_est: np.ndarray, q_ref: np.ndarray,
     if denom > 0:
         shift += 0.5 * (y0 - y2) / denom
     return shift * step, ""
+
+
+def _gridded_span(t: np.ndarray, ok: np.ndarray, step: float) -> tuple[np.ndarray, str]:
+    """The scored samples to measure the lag on, and what they are called in a reason.
+
+    All of them, unless the uniform grid over their span would hold more than
+    ``MAX_GRID_PER_SAMPLE`` points per IMU sample: then the span is mostly a time gap (a
+    clock that jumped by days gives billions of points) and only the longest stretch
+    without a gap of over ``GAP_STEPS`` IMU steps is used, whose grid is bounded by its
+    sample count.
+    """
+    idx = np.flatnonzero(ok)
+    if (t[idx[-1]] - t[idx[0]]) / step <= MAX_GRID_PER_SAMPLE * t.shape[0]:
+        return ok, "scored span"
+    breaks = np.flatnonzero(np.diff(t[idx]) > GAP_STEPS * step) + 1
+    stretches = np.split(idx, breaks)
+    longest = max(stretches, key=len)
+    out = np.zeros_like(ok)
+    out[longest] = True
+    return out, "longest scored stretch without a time gap"

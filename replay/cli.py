@@ -30,7 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "replayed in parallel, one summary per log, per estimator, per vehicle "
                     "type and per flight phase; a log that fails is reported with its "
                     "reason and the rest go on (exit 0 if any log was scored, else 2).")
-    p.add_argument("paths", type=Path, nargs="+", metavar="PATH",
+    p.add_argument("paths", type=path_argument, nargs="+", metavar="PATH",
                    help="a log file; or several files, folders, patterns (a corpus)")
     p.add_argument("--estimator", "-e", action="append", default=[], metavar="NAME[:k=v,...]",
                    help="estimator with optional parameters; repeat to compare several")
@@ -69,7 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Search a parameter grid for the set minimising the mean total RMSE "
                     "over all files (one parameter set for all, as in BROAD). Ctrl-C "
                     "stops early and keeps the points done so far.")
-    t.add_argument("files", type=Path, nargs="+", metavar="PATH",
+    t.add_argument("files", type=path_argument, nargs="+", metavar="PATH",
                    help="log files, folders (every log inside, recursively), patterns")
     t.add_argument("--estimator", "-e", required=True, metavar="NAME[:k=v,...]",
                    help="estimator, with parameters fixed at every grid point")
@@ -82,7 +82,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--out", type=Path, metavar="SWEEP.csv|.json", help="write the sweep")
     t.add_argument("--heatmap", type=Path, metavar="OUT.png",
                    help="figure of mean total RMSE over the first two swept parameters")
-    t.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    t.add_argument("--quiet", "-q", action="store_true",
+                   help="no progress bar, no per-log damage notes (--out JSON keeps them)")
     t.add_argument("--cross-validate", action="store_true",
                    help="also choose the grid point on all logs but one (or one group) and "
                         "score it on the held-out one: the cross-validated error beside "
@@ -121,6 +122,33 @@ def _input_options(p: argparse.ArgumentParser) -> None:
                         "log's position and date)")
     p.add_argument("--aid", choices=("velocity", "none"), default=None,
                    help="velocity aiding from the log (default: velocity when the log has it)")
+
+
+def path_argument(text: str) -> Path:
+    """argparse's type for PATH: an empty one refused in argparse's one line (as a Path
+    it would already be ".", the current folder, replayed whole)."""
+    from .logpaths import log_path
+
+    try:
+        return log_path(text)
+    except ReplayInputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def check_jobs(jobs: int | None) -> None:
+    """``--jobs`` below 1 refused, as the corpus replay refuses it, also where it would
+    not be used (one log replays in this process) or be read as "every core" (tune)."""
+    from .parallel import workers_for
+
+    workers_for(jobs, 1)
+
+
+def check_scheduler_address(address: str | None) -> None:
+    """A ``--scheduler`` that is no address refused also where one log runs here."""
+    if address is not None:
+        from .cluster import check_address
+
+        check_address(address)
 
 
 def _fail(command: str, exc: Exception | str) -> int:
@@ -190,6 +218,8 @@ def _replay(args: argparse.Namespace) -> int:
         return replay_corpus(args)
     args.file = args.paths[0]
     try:
+        check_jobs(args.jobs)
+        check_scheduler_address(args.scheduler)
         check_outputs(((args.report, "--report"), (args.json, "--json"),
                        (args.csv, "--csv")), [Path(args.file)])
         check_output_dir(args.png, "--png")
@@ -239,19 +269,20 @@ def _tune(args: argparse.Namespace) -> int:
     from .crossval import check_groups, cross_validate, identical_logs
     from .evaluate import prepare
     from .logpaths import expand
-    from .tune import parse_param, sweep
+    from .tune import library_axis, parse_param, sweep
     from .tune_tasks import TuneInputs, no_log_left, sweep_on_cluster, tunable, unusable
 
     try:
+        check_jobs(args.jobs)
         check_outputs(((args.out, "--out"), (args.heatmap, "--heatmap")),
                       expand(args.files))
         if args.heatmap:
             require_module("matplotlib", "--heatmap")
         if args.group_by != "log" and not args.cross_validate:
             raise ReplayInputError("--group-by goes with --cross-validate")
-        axes = [parse_param(p) for p in args.param]
         # -e NAME[:k=v,...] and --set k=v both fix parameters (the swept ones excepted)
         spec = EstimatorSpec.parse(args.estimator)
+        axes = [library_axis(parse_param(p), spec.name) for p in args.param]
         extra = EstimatorSpec.parse(f"{spec.name}:{','.join(args.set)}").params
         twice = sorted(set(spec.params) & set(extra))
         if twice:
@@ -321,8 +352,11 @@ def _tune(args: argparse.Namespace) -> int:
               + f"  mean total {result.mean_total[i]:.3f} deg (heading "
               f"{result.heading[i].mean():.3f}, inclination {result.inclination[i].mean():.3f})"
               + ("  [6D: minimised inclination]" if result.objective == "inclination" else ""))
-        for path, total in zip(result.files, result.total[i], strict=True):
+        for k, (path, total) in enumerate(zip(result.files, result.total[i], strict=True)):
             print(f"  {Path(path).name}: total {total:.3f} deg")
+            if not args.quiet:  # what the log lost: its score is on what is left
+                for note in result.notes_of(k):
+                    print(f"    note: {note}")
     if cv is not None:
         print("\n".join(cv.lines()))
     try:

@@ -23,14 +23,14 @@ import logging
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import SplitResult, urlsplit
 
 from .dataset import ReplayInputError
 from .parallel import OnCrash, OnDone, Outcome, Task
 
 CONNECT_TIMEOUT_S = 5.0
 EXTRA = "cluster"
-SCHEMES = ("tcp", "tls")
+SCHEME = "tcp"  # tls:// would need Dask security settings (certificates) not taken here
 
 
 def require_dask() -> None:
@@ -39,14 +39,31 @@ def require_dask() -> None:
                                f"'attitude-bridge[{EXTRA}]'")
 
 
-def check_address(address: str) -> None:
-    """``tcp://HOST:PORT`` (or ``tls://``), before any connection is tried."""
-    parts = urlsplit(address)
+def _split(address: str) -> tuple[SplitResult, int | None] | None:
+    """The address's parts and port; None for what urlsplit refuses outright (an
+    unclosed ``[`` of an IPv6 host). A port that is no number is None."""
     try:
-        port = parts.port
+        parts = urlsplit(address)
     except ValueError:
-        port = None
-    if parts.scheme not in SCHEMES or not parts.hostname or port is None or parts.path:
+        return None
+    try:
+        return parts, parts.port
+    except ValueError:
+        return parts, None
+
+
+def check_address(address: str) -> None:
+    """``tcp://HOST:PORT``, before any connection is tried; every refusal names the
+    option. ``tls://`` is refused as such: without the certificates Dask's TLS needs,
+    its connection fails in a way that looks like a foreign server."""
+    split = _split(address)
+    if split is not None and split[0].scheme == "tls":
+        raise ReplayInputError(f"--scheduler {address!r}: only tcp:// is supported "
+                               f"(tls:// needs Dask security settings this option does "
+                               f"not take)")
+    parts, port = split or (None, None)
+    if (parts is None or parts.scheme != SCHEME or not parts.hostname or port is None
+            or parts.path):
         raise ReplayInputError(f"--scheduler {address!r}: expected a Dask scheduler's "
                                f"address, tcp://HOST:PORT (e.g. tcp://10.0.0.5:8786)")
 

@@ -16,10 +16,51 @@ import numpy as np
 
 REFERENCE_KINDS = ("truth", "autopilot")
 NORTH_KINDS = ("true", "magnetic")
+#: No IMU samples faster than this: the fastest MEMS gyros output 32 kHz (ICM-42688's
+#: top ODR), a flight controller's FIFO at most 8 kHz. A higher mean rate means time
+#: in the wrong unit (ms, µs or ns read as seconds) or a wrong ``rate``, and every dt
+#: would be off by that factor: the file is refused instead of scored.
+MAX_RATE_HZ = 100e3
+#: A quaternion shorter than this is no attitude (an all-zero row: "no value")
+MIN_QUATERNION_NORM = 1e-6
 
 
 class ReplayInputError(ValueError):
     """A file that cannot be replayed: missing, unknown format, no IMU, no overlap..."""
+
+
+def usable_quaternions(q: np.ndarray) -> np.ndarray:
+    """(M,) True where a row is an attitude: finite, with a finite norm not about zero.
+
+    A zero row is how several logs say "no value"; a row whose norm overflows cannot
+    be normalised. Either, used as a reference, would score a made-up attitude.
+    """
+    q = np.asarray(q, dtype=float)
+    finite = np.all(np.isfinite(q), axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):
+        norm = np.linalg.norm(np.where(finite[:, None], q, 0.0), axis=1)
+    return finite & np.isfinite(norm) & (norm > MIN_QUATERNION_NORM)
+
+
+def usable_magnetometer(mag: np.ndarray) -> np.ndarray:
+    """(N,) True where a magnetometer reading has a direction: finite and not all zero
+    (an all-zero reading is an unset field; the estimators skip both kinds)."""
+    return np.all(np.isfinite(mag), axis=1) & np.any(mag != 0.0, axis=1)
+
+
+def damaged_magnetometer_rows(mag: np.ndarray) -> int:
+    """Readings without a direction, leaving out the all-NaN rows before the first good
+    one: those say "no reading yet" (a slower magnetometer held on the IMU clock)."""
+    usable = usable_magnetometer(mag)
+    not_yet = (np.arange(len(mag)) < int(np.argmax(usable))) & np.all(np.isnan(mag), axis=1)
+    return int(np.count_nonzero(~usable & ~not_yet))
+
+
+def scale_safe_std(x: np.ndarray) -> float:
+    """Standard deviation that does not overflow for any finite ``x`` (squaring steps of
+    1e300 s from a nonsense rate would, with a numpy warning)."""
+    scale = float(np.max(np.abs(x))) if x.size else 0.0
+    return scale * float(np.std(x / scale)) if scale > 0.0 else 0.0
 
 
 @dataclass(frozen=True)
@@ -62,6 +103,9 @@ class Reference:
     # declination); "magnetic": relative to the magnetic north the IMU sees (BROAD).
     north: str = "true"
     timing: str = ""  # how its time was obtained when not its own stamp (e.g. arrival)
+    #: rows given with a zero or non-finite quaternion (damage; made NaN here). All-NaN
+    #: rows are not counted: they are how a file says "no reference here".
+    damaged: int = 0
 
     def __post_init__(self) -> None:
         if self.north not in NORTH_KINDS:
@@ -70,6 +114,31 @@ class Reference:
             raise ValueError(f"reference kind must be one of {REFERENCE_KINDS}, got {self.kind!r}")
         if self.q.shape != (self.t.shape[0], 4):
             raise ValueError(f"reference q must be ({self.t.shape[0]}, 4), got {self.q.shape}")
+        self._blank_unusable_rows()
+
+    def _blank_unusable_rows(self) -> None:
+        """Zero and non-finite quaternions become NaN ("no reference"), counted in
+        ``damaged``, however the Reference was made: none is ever scored against."""
+        bad = ~usable_quaternions(self.q)
+        if not bad.any():
+            return
+        q = np.array(self.q, dtype=float)
+        damaged = bad & ~np.all(np.isnan(q), axis=1)
+        q[bad] = np.nan
+        object.__setattr__(self, "q", q)
+        object.__setattr__(self, "damaged", self.damaged + int(np.count_nonzero(damaged)))
+
+    @property
+    def valid(self) -> int:
+        """Samples with an attitude."""
+        return int(np.count_nonzero(np.all(np.isfinite(self.q), axis=1)))
+
+    def damage_note(self, label: str) -> str:
+        """"<label>: K of M quaternions unusable (...)", or "" when none was damaged."""
+        if not self.damaged:
+            return ""
+        return (f"{label}: {self.damaged} of {self.t.shape[0]} quaternions unusable "
+                f"(zero or not finite)")
 
 
 @dataclass(frozen=True)
@@ -157,6 +226,9 @@ class Recording:
     #: the autopilot's own attitude when ``reference`` is another kind (the truth), to
     #: score it beside the estimators; None otherwise
     autopilot: Reference | None = None
+    #: readings of a magnetometer the file had without a single usable one: it is left
+    #: out (``mag`` None, heading not observable) and this says why
+    mag_dropped: int = 0
 
     def __post_init__(self) -> None:
         if self.reference is not None and self.reference.kind not in self.references:
@@ -171,6 +243,51 @@ class Recording:
         if self.velocity is not None and (self.velocity.vel.shape != (n, 3)
                                           or self.velocity.age.shape != (n,)):
             raise ValueError(f"velocity must be ({n}, 3) with age ({n},)")
+        self._check_rate()
+        self._drop_useless_magnetometer()
+        self._add_notes(self._damage_notes())
+
+    def _check_rate(self) -> None:
+        """Refuse a rate no IMU has (:data:`MAX_RATE_HZ`): every dt would be wrong."""
+        if self.n > 1 and self.rate_hz > MAX_RATE_HZ:
+            raise ReplayInputError(f"{self.path}: IMU rate {self.rate_hz:.4g} Hz implausible: "
+                                   f"time not in seconds? (no IMU samples faster than "
+                                   f"{MAX_RATE_HZ:g} Hz)")
+
+    def _drop_useless_magnetometer(self) -> None:
+        """A magnetometer without one usable reading is no magnetometer: estimators fed
+        it would report a heading they never observed."""
+        if self.mag is None or usable_magnetometer(self.mag).any():
+            return
+        object.__setattr__(self, "mag_dropped", self.n)
+        object.__setattr__(self, "mag", None)
+
+    def _damage_notes(self) -> list[str]:
+        """One counted note per damaged stream (the gyro's are the estimators' skipped
+        samples, said under the scores)."""
+        notes = []
+        if self.mag_dropped:
+            notes.append(f"magnetometer: none of {self.mag_dropped} readings usable (NaN, "
+                         f"infinite or zero): replayed without it, heading not observable")
+        elif self.mag is not None and (bad := damaged_magnetometer_rows(self.mag)):
+            notes.append(f"magnetometer: {bad} of {self.n} readings unusable (NaN, infinite "
+                         f"or zero)")
+        bad_acc = int(np.count_nonzero(~np.all(np.isfinite(self.acc), axis=1)))
+        if bad_acc:
+            notes.append(f"accelerometer: {bad_acc} of {self.n} readings not finite (the "
+                         f"estimators use the gyro alone there)")
+        for ref, label in ((self.reference, "reference"),
+                           (self.autopilot, "the autopilot's attitude")):
+            if ref is not None and (note := ref.damage_note(label)):
+                notes.append(note)
+        return notes
+
+    def _add_notes(self, notes: list[str]) -> None:
+        """Append the notes not there yet (a Recording copied with dataclasses.replace
+        runs this again)."""
+        new = tuple(n for n in notes if n not in self.notes)
+        if new:
+            object.__setattr__(self, "notes", (*self.notes, *new))
 
     @property
     def n(self) -> int:
@@ -200,7 +317,7 @@ class Recording:
     @cached_property
     def jitter_ms(self) -> float:
         """Standard deviation of the IMU's time steps (outages left out) [ms]."""
-        return float(1e3 * np.std(self._steps)) if self._steps.size else 0.0
+        return 1e3 * scale_safe_std(self._steps)
 
     @cached_property
     def dt(self) -> np.ndarray:

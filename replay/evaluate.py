@@ -20,7 +20,7 @@ from imu.flight_state import state_name
 from imu.vehicles import type_name
 
 from .align import DEFAULT_MAX_GAP_S, measure_lag, reference_at
-from .dataset import Recording, ReplayInputError
+from .dataset import Recording, Reference, ReplayInputError
 from .declination import Declination, check_against_reference, resolve
 from .flight import PHASES, FlightTrack, track
 from .references import ReferenceRun, reference_runs
@@ -34,6 +34,19 @@ CONVERGED_HOLD_S = 1.0  # ... for at least this long
 #: (a tlog's 3 Hz RAW_IMU): the estimators are not run at all.
 MIN_RATE_HZ = 20.0
 AID_CHOICES = ("auto", "velocity", "none")
+#: What a format calls its score mask, and what the mask selects, for the footnotes
+SCORE_MASK_NAMES = {"csv": ("score column", "row"), "npz": ("movement array", "sample")}
+
+
+def amount(x: float, decimals: int = 1, tiny: bool = True) -> str:
+    """A duration, rate or jitter for a one-line summary: fixed decimals in the range
+    real logs have, else three digits with an exponent (a nonsense rate is not 300
+    digits). ``tiny``: also an exponent below the decimals (a rate of 1e-300 Hz is not
+    "0.0 Hz"); without it they read as zero (a jitter of 1e-12 ms)."""
+    small = tiny and abs(x) < 10.0**-decimals
+    if x == 0.0 or (abs(x) < 1e6 and not small):
+        return f"{x:.{decimals}f}"
+    return f"{x:.3g}"
 
 
 def default_specs() -> list[EstimatorSpec]:
@@ -75,15 +88,41 @@ def prepare(rec: Recording, method: str = "slerp", max_gap: float = DEFAULT_MAX_
     scored = np.all(np.isfinite(q_ref), axis=1)
     if rec.score_mask is not None:
         scored &= rec.score_mask
-    why = ""
-    if not scored.any():
-        r = rec.reference
-        span = f"{r.t[0]:.1f}..{r.t[-1]:.1f} s" if r.t.size else "no samples"
-        why = (f"reference ({r.source}, {span}) does not overlap the IMU ({rec.t[0]:.1f}.."
-               f"{rec.t[-1]:.1f} s) with gaps under {max_gap:g} s")
-        if r.t.size and rec.score_mask is not None:
-            why = f"no sample with a reference inside the file's score mask; {why}"
+    why = "" if scored.any() else unscored_reason(rec, rec.reference, q_ref, max_gap)
     return Prepared(rec, q_ref, scored, dec, aid, aid_note, why, flight, delay)
+
+
+def unscored_reason(rec: Recording, ref: Reference, q_ref: np.ndarray, max_gap: float
+                    ) -> str:
+    """Why no IMU sample is scored: the reference ``ref`` (``q_ref`` on the IMU clock)
+    has no attitude at all, the score mask selects nothing, the two miss each other, or
+    the reference misses the IMU in time."""
+    mask = rec.score_mask
+    if ref.valid == 0 or mask is None:
+        return attitude_gap(ref, "reference", rec.t, "the IMU", max_gap)
+    name, unit = SCORE_MASK_NAMES.get(rec.format, ("score mask", "sample"))
+    if not mask.any():
+        return f"the file's {name} selects no {unit}"
+    has_ref = np.all(np.isfinite(q_ref), axis=1)
+    if has_ref.any():
+        return (f"no {unit} with a reference inside the file's {name} "
+                f"({np.count_nonzero(has_ref)} with a reference, {np.count_nonzero(mask)} "
+                f"selected)")
+    return attitude_gap(ref, "reference", rec.t, "the IMU", max_gap)
+
+
+def attitude_gap(ref: Reference, label: str, t: np.ndarray, where: str,
+                 max_gap: float) -> str:
+    """Why an attitude (the reference, the autopilot's) is on none of the IMU times
+    ``t``: it has no sample, no valid quaternion, or none within ``max_gap`` of them."""
+    n = ref.t.shape[0]
+    if n == 0:
+        return f"{label} ({ref.source}) has no samples"
+    if ref.valid == 0:
+        return f"{label} ({ref.source}) has no valid quaternion ({n} of {n} zero or not a number)"
+    dropped = f"; dropped {ref.cleanup}" if ref.cleanup.dropped else ""
+    return (f"{label} ({ref.source}, {ref.t[0]:.1f}..{ref.t[-1]:.1f} s{dropped}) does not "
+            f"overlap {where} ({t[0]:.1f}..{t[-1]:.1f} s) with gaps under {max_gap:g} s")
 
 
 def recording_imu_delay(rec: Recording) -> FilterDelay:
@@ -246,6 +285,16 @@ class Score:
                 for k, v in asdict(self).items()}
 
 
+def six_d_reason(rec: Recording) -> str:
+    """Why heading is not scored on a 6D run (:func:`is_six_d`)."""
+    if rec.mag_dropped:
+        return (f"no usable magnetometer reading ({rec.mag_dropped} of {rec.mag_dropped} "
+                f"NaN, infinite or zero): heading not observable (6D, see inclination)")
+    if rec.mag is None:
+        return "no magnetometer in the file: heading not observable (6D, see inclination)"
+    return "the estimator uses no magnetometer: heading not observable (6D, see inclination)"
+
+
 def is_six_d(rec: Recording, name: str) -> bool:
     """True when heading is unobservable: no magnetometer in the file, or an estimator
     that declares ``uses_magnetometer = False``. BROAD judges those on inclination only."""
@@ -256,6 +305,8 @@ def is_six_d(rec: Recording, name: str) -> bool:
 def never_started(run: Run, running: np.ndarray) -> str:
     """Why an estimator has no attitude on any scored sample, from its sample counts."""
     c = run.counters
+    if not c.samples:  # an attitude that is no run of ours (a reference filter's)
+        return "no attitude on any scored sample (outside its time span or in its gaps)"
     if c.samples and c.skipped == c.samples:
         return ("the estimator skipped every sample (gyro not finite or beyond twice its "
                 "full scale, or a bad time step)")
@@ -265,9 +316,11 @@ def never_started(run: Run, running: np.ndarray) -> str:
     return "the estimator never started on a scored sample"
 
 
-def score(prep: Prepared, run: Run, six_d: bool | None = None) -> Score:
+def score(prep: Prepared, run: Run, six_d: bool | None = None, unscored: str = "") -> Score:
     """``six_d``: judge on inclination only (default: :func:`is_six_d` of the run's
-    estimator; given for an attitude that is no estimator of ours, the autopilot's)."""
+    estimator; given for an attitude that is no estimator of ours, the autopilot's).
+    ``unscored``: why such an attitude is on no scored sample, should it be (its own
+    reason: an estimator's, from its sample counts, would not apply)."""
     rec = prep.recording
     six_d = is_six_d(rec, run.spec.name) if six_d is None else six_d
     keep = prep.scored & np.all(np.isfinite(run.q), axis=1)
@@ -277,7 +330,7 @@ def score(prep: Prepared, run: Run, six_d: bool | None = None) -> Score:
     mag_rej = float(np.count_nonzero(run.flags[running] & estimators.base._core.F_MAG_REJECTED))
     nan = float("nan")
     if prep.q_ref is None or not keep.any():
-        why = prep.unscored or never_started(run, running)
+        why = prep.unscored or unscored or never_started(run, running)
         return Score(nan, nan, nan, nan, nan, nan, nan, nan, 0, acc_rej / n_run,
                      mag_rej / n_run, run.counters.skipped, run.seconds, six_d,
                      {c: why for c in SCORE_COLUMNS})
@@ -297,7 +350,7 @@ def score(prep: Prepared, run: Run, six_d: bool | None = None) -> Score:
     total, heading, yaw = rms.total_deg, rms.heading_deg, float(euler_rms[2])
     if six_d:  # BROAD: without a magnetometer heading is not observable
         total = heading = yaw = nan
-        why = "no magnetometer in the file: heading not observable (6D, see inclination)"
+        why = six_d_reason(rec)
         reasons.update(total_deg=why, heading_deg=why, yaw_deg=why)
         if "convergence_s" not in reasons:
             converged = nan  # measured on the total error, which includes heading
@@ -476,8 +529,8 @@ def evaluate(rec: Recording, specs: list[EstimatorSpec | str] | None = None,
         check_against_reference(rec, float(spec.params.get("declination", 0.0)),
                                 spec.label)
     if rec.rate_hz < min_rate_hz:
-        return Evaluation(prep, {}, {}, f"IMU at {rec.rate_hz:.1f} Hz is too slow to estimate "
-                                        f"attitude from (needs >= {min_rate_hz:g} Hz)")
+        return Evaluation(prep, {}, {}, f"IMU at {amount(rec.rate_hz)} Hz is too slow to "
+                                        f"estimate attitude from (needs >= {min_rate_hz:g} Hz)")
     from .smoothing import (
         AUTOPILOT,
         SMOOTHED,
@@ -496,7 +549,7 @@ def evaluate(rec: Recording, specs: list[EstimatorSpec | str] | None = None,
     scores = {label: score(prep, r) for label, r in runs.items()}
     own = autopilot_run(prep)
     if own is not None:
-        scores[AUTOPILOT] = score(prep, own, six_d=False)
+        scores[AUTOPILOT] = score(prep, own, six_d=False, unscored=autopilot_gap(prep))
     references = {ref.label: ref for ref in reference_runs(rec, prep.declination.rad, compare)}
     for label, ref in references.items():
         scores[label] = score(prep, _reference_as_run(ref), six_d=ref.six_d)
@@ -507,6 +560,15 @@ def evaluate(rec: Recording, specs: list[EstimatorSpec | str] | None = None,
             label: (_reference_as_run(ref), ref.six_d) for label, ref in references.items()}))
     return Evaluation(prep, runs, scores, vs_smoothed=vs_smoothed,
                       smoothed_label=smoothed_label, references=references)
+
+
+def autopilot_gap(prep: Prepared) -> str:
+    """Why the autopilot's attitude is on no scored sample, should it be."""
+    own = prep.recording.autopilot
+    if own is None or not prep.scored.any():
+        return ""
+    return attitude_gap(own, "the autopilot's attitude", prep.recording.t[prep.scored],
+                        "the scored IMU samples", DEFAULT_MAX_GAP_S)
 
 
 def _reference_as_run(ref: ReferenceRun) -> Run:

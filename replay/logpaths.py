@@ -25,6 +25,17 @@ from pathlib import Path
 from .dataset import ReplayInputError
 from .readers import LOG_SUFFIXES
 
+#: Path("") is the current folder: an unset shell variable ($LOGS) would replay or tune
+#: on everything below it.
+EMPTY_PATH = "empty path (an unset shell variable?): give a log file, a folder or a pattern"
+
+
+def log_path(text: str) -> Path:
+    """A PATH argument as a Path; ReplayInputError for an empty one (see EMPTY_PATH)."""
+    if not text:
+        raise ReplayInputError(EMPTY_PATH)
+    return Path(text)
+
 
 def is_pattern(text: str) -> bool:
     return glob.has_magic(text)
@@ -53,12 +64,12 @@ def logs_in_folder(folder: Path) -> list[Path]:
 def expand(paths: Iterable[str | Path]) -> list[Path]:
     """The logs the PATH arguments stand for, sorted by path, each once.
 
-    A folder without any log, or a pattern that matches nothing, is an error (a typo
-    should not shrink a corpus silently).
+    A folder without any log, a pattern that matches nothing or an empty path is an
+    error (a typo should not shrink a corpus silently, nor an unset variable widen it).
     """
     out: list[Path] = []
     for arg in paths:
-        p = Path(arg)
+        p = log_path(os.fspath(arg))
         if p.is_dir():
             found = logs_in_folder(p)
             if not found:

@@ -23,7 +23,7 @@ import estimators
 from estimators import _core, metrics
 from estimators.spec import user_param
 
-from .evaluate import Evaluation, vehicle_note
+from .evaluate import Evaluation, amount, vehicle_note
 from .flight import PHASES
 from .plotdata import decimation, plot_angles
 from .summary import COLUMNS
@@ -79,8 +79,8 @@ def _info_html(ev: Evaluation) -> str:
     ref = rec.reference
     rows = [
         ("file", f"{rec.path} ({rec.format})"),
-        ("IMU", f"{rec.source}: {rec.n} samples over {rec.duration:.1f} s at "
-                f"{rec.rate_hz:.1f} Hz; body {rec.body}, world {rec.world}"),
+        ("IMU", f"{rec.source}: {rec.n} samples over {amount(rec.duration)} s at "
+                f"{amount(rec.rate_hz)} Hz; body {rec.body}, world {rec.world}"),
         ("reference", "none" if ref is None else
          f"{ref.kind} ({ref.source}), {ref.north} north" + (f"; {ref.timing}" if ref.timing
                                                             else "")),

@@ -20,7 +20,17 @@ import estimators
 from estimators.spec import EstimatorSpec
 
 from .align import reference_at
-from .evaluate import Prepared, Run, Score, aiding_kwargs, flight_kwargs, placed, run_inputs, score
+from .evaluate import (
+    Prepared,
+    Run,
+    Score,
+    aiding_kwargs,
+    autopilot_gap,
+    flight_kwargs,
+    placed,
+    run_inputs,
+    score,
+)
 
 SMOOTHED = " smoothed"  # label suffix of a smoothed run
 AUTOPILOT = "autopilot"  # label of the autopilot's own attitude as a score row
@@ -75,7 +85,7 @@ def against_smoothed(prep: Prepared, runs: dict[str, Run], smoothed: Run
     if own is not None:
         run = Run(EstimatorSpec("autopilot"), own, np.zeros(len(own), dtype=np.uint8),
                   np.full((len(own), 3), np.nan), estimators.SampleCounters(), 0.0)
-        out[AUTOPILOT] = score(base, run, six_d=False)
+        out[AUTOPILOT] = score(base, run, six_d=False, unscored=autopilot_gap(prep))
     return out
 
 

@@ -11,7 +11,7 @@ import math
 import sys
 from typing import TextIO
 
-from .evaluate import Evaluation, vehicle_note
+from .evaluate import Evaluation, amount, vehicle_note
 from .flight import PHASES
 
 #: (Score field, header, scale, format)
@@ -26,8 +26,8 @@ def header_lines(ev: Evaluation) -> list[str]:
     rec, prep = ev.recording, ev.prepared
     ref = rec.reference
     lines = [f"{rec.path}: {rec.format}, IMU {rec.source}, {rec.n} samples, "
-             f"{rec.duration:.1f} s at {rec.rate_hz:.1f} Hz (mean; jitter "
-             f"{rec.jitter_ms:.2f} ms)"]
+             f"{amount(rec.duration)} s at {amount(rec.rate_hz)} Hz (mean; jitter "
+             f"{amount(rec.jitter_ms, 2, tiny=False)} ms)"]
     if ref is None:
         lines.append("  reference:   none (nothing to score against)")
     else:

@@ -14,24 +14,25 @@ import itertools
 import json
 import math
 import multiprocessing as mp
-import os
 import signal
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 import estimators
 from estimators import metrics
-from estimators.spec import EstimatorSpec
+from estimators.spec import EstimatorSpec, to_internal
 
+from .dataset import Recording
 from .evaluate import Prepared, is_six_d, run_estimator
+from .parallel import workers_for
 from .progress import Progress
 
-__all__ = ["ParamAxis", "Progress", "Sweep", "grid_points", "parse_param", "score_params",
-           "sweep"]
+__all__ = ["ParamAxis", "Progress", "Sweep", "damage_notes", "grid_points", "library_axis",
+           "parse_param", "score_params", "sweep"]
 
 
 @dataclass(frozen=True)
@@ -40,6 +41,7 @@ class ParamAxis:
 
     name: str
     values: np.ndarray
+    text: str = field(default="", compare=False)  # as given (``-p kp=1,2``), for errors
 
 
 #: The largest grid a sweep takes: a million points is days on one core for a long log;
@@ -70,7 +72,39 @@ def parse_param(text: str) -> ParamAxis:
             raise ValueError(f"--param {text!r}: {n:,} values (at most {MAX_GRID_POINTS:,} "
                              f"in a grid)")
         values = np.linspace(lo, hi, n)
-    return ParamAxis(name.strip(), values)
+    return ParamAxis(name.strip(), values, text)
+
+
+def library_axis(axis: ParamAxis, estimator: str) -> ParamAxis:
+    """The axis under the library's name and in its unit: ``bias_limit_dps=1,20`` sweeps
+    ``bias_limit`` in rad/s, converted as ``-e NAME:k=v`` and ``--set`` convert (the
+    user surface's degree aliases); an unknown name fails here, listing the valid ones."""
+    cls = estimators.estimator_class(estimator)
+    try:
+        name, _ = to_internal(cls, axis.name, float(axis.values[0]))
+    except ValueError as exc:
+        raise _refused(axis, exc) from None
+    if name == axis.name:
+        return axis
+    values = np.array([to_internal(cls, axis.name, float(v))[1] for v in axis.values])
+    return ParamAxis(name, values, axis.text)
+
+
+def check_values(cls: type[estimators.Estimator], axis: ParamAxis,
+                 fixed: dict[str, float]) -> None:
+    """Every value of the axis passes the estimator's own checks (finite, within the
+    parameter's bounds), as a single value does: a value it refuses would otherwise
+    reach the sweep and score as a row of NaN."""
+    for value in np.unique(axis.values):
+        try:
+            cls.make_params(**{**fixed, axis.name: float(value)})
+        except ValueError as exc:
+            raise _refused(axis, exc) from None
+
+
+def _refused(axis: ParamAxis, exc: ValueError) -> ValueError:
+    """The estimator's refusal, naming the ``--param`` it came from as the user gave it."""
+    return ValueError(f"--param {axis.text or axis.name!r}: {exc}")
 
 
 @dataclass(frozen=True)
@@ -89,6 +123,7 @@ class Sweep:
     objective: str = "total"  # "inclination" for 6D estimators/files (BROAD rule)
     done: np.ndarray | None = None  # (P,) bool: scored (all True unless interrupted)
     interrupted: bool = False  # stopped by Ctrl-C: only the ``done`` points are real
+    notes: tuple[tuple[str, ...], ...] = ()  # per file: damage_notes (empty: none known)
 
     def __post_init__(self) -> None:
         if self.done is None:
@@ -130,7 +165,12 @@ class Sweep:
         return replace(self, files=tuple(f for f, k in zip(self.files, keep, strict=True)
                                          if k),
                        total=self.total[:, keep], heading=self.heading[:, keep],
-                       inclination=self.inclination[:, keep])
+                       inclination=self.inclination[:, keep],
+                       notes=tuple(n for n, k in zip(self.notes, keep, strict=False) if k))
+
+    def notes_of(self, index: int) -> tuple[str, ...]:
+        """The damage notes of file ``index`` (none when the sweep was made without)."""
+        return self.notes[index] if index < len(self.notes) else ()
 
     def grid(self, values: np.ndarray | None = None) -> np.ndarray:
         """Scores reshaped to the grid: axis order as given on the command line."""
@@ -171,9 +211,26 @@ class Sweep:
                         "total_deg": [clean(v) for v in self.total[i]],
                         "inclination_deg": [clean(v) for v in self.inclination[i]]}
                        for i, p in enumerate(self.points) if self.done[i]],
+            "notes": {f: list(self.notes_of(k)) for k, f in enumerate(self.files)},
             **(extra or {}),
         }
         Path(path).write_text(json.dumps(doc, indent=1), encoding="utf-8")
+
+
+#: Words by which a reader's note reports damage (samples lost, skipped or cut off)
+#: rather than where the data came from ("IMU HIGHRES_IMU from system 1", "magnetometer
+#: from ..."): the readers' notes carry no kind of their own.
+DAMAGE_WORDS = ("dropped", "damaged", "ends inside", "ends mid-record", "unreadable",
+                "restarted")
+
+
+def damage_notes(rec: Recording) -> tuple[str, ...]:
+    """The reader's notes on what the log lost, in the single-file replay's words: a
+    score on a damaged log should not read as one on a whole log."""
+    notes = [n for n in rec.notes if any(word in n for word in DAMAGE_WORDS)]
+    if rec.cleanup.dropped:
+        notes.append(f"dropped IMU samples: {rec.cleanup}")
+    return tuple(notes)
 
 
 # Set in the parent before the pool forks; workers read it instead of receiving arrays.
@@ -215,7 +272,8 @@ def _score_point(index_params: tuple[int, dict[str, float]]) -> tuple[int, np.nd
 def grid_points(estimator: str, axes: Sequence[ParamAxis], fixed: dict[str, float]
                 ) -> tuple[dict[str, float], ...]:
     """Every combination of the swept values, in the axes' order (the last varies
-    fastest); unknown names and a parameter swept twice fail here, before any work."""
+    fastest); unknown names, a parameter swept twice and a value the estimator refuses
+    fail here, before any work."""
     cls = estimators.estimator_class(estimator)
     names = [a.name for a in axes]
     if len(set(names)) != len(names):
@@ -228,8 +286,9 @@ def grid_points(estimator: str, axes: Sequence[ParamAxis], fixed: dict[str, floa
     if both:
         raise ValueError(f"{', '.join(both)}: both swept (-p) and fixed (--set or "
                          f"-e {estimator}:...); give it one way")
-    cls.make_params(**{n: float(a.values[0]) for n, a in zip(names, axes, strict=True)},
-                    **fixed)
+    cls.make_params(**fixed)  # first alone: an error there is not the --param's
+    for axis in axes:
+        check_values(cls, axis, fixed)
     return tuple(dict(zip(names, map(float, combo), strict=True))
                  for combo in itertools.product(*(a.values for a in axes)))
 
@@ -248,7 +307,7 @@ def sweep(prepared: Sequence[Prepared], estimator: str, axes: Sequence[ParamAxis
     if not prepared or not all(p.q_ref is not None and p.scored.any() for p in prepared):
         raise ValueError("every file needs a reference attitude to tune against")
     _PREPARED, _TASK = list(prepared), (estimator, fixed, init)
-    jobs = max(1, min(jobs or os.cpu_count() or 1, len(points)))
+    jobs = workers_for(jobs, len(points))
     bar = Progress(len(points)) if progress else None
     results = np.full((len(points), len(prepared), 3), np.nan)
     done = np.zeros(len(points), dtype=bool)
@@ -287,4 +346,5 @@ def sweep(prepared: Sequence[Prepared], estimator: str, axes: Sequence[ParamAxis
     return Sweep(estimator, tuple(axes), fixed,
                  tuple(str(p.recording.path) for p in prepared), points,
                  results[:, :, 0], results[:, :, 1], results[:, :, 2], seconds,
-                 "inclination" if six_d else "total", done, interrupted)
+                 "inclination" if six_d else "total", done, interrupted,
+                 tuple(damage_notes(p.recording) for p in prepared))

@@ -30,7 +30,7 @@ from .dataset import ReplayInputError
 from .evaluate import Prepared
 from .parallel import run
 from .progress import Progress
-from .tune import ParamAxis, Sweep, grid_points, score_params
+from .tune import ParamAxis, Sweep, damage_notes, grid_points, score_params
 
 #: Aim for at least this many tasks (a log's grid is split when there are fewer logs) ...
 MIN_TASKS = 32
@@ -79,7 +79,8 @@ def prepare_log(path: str, inputs: TuneInputs) -> Prepared:
 def sweep_share(display: str, load_path: str, inputs: TuneInputs, estimator: str,
                 fixed: dict[str, float], points: tuple[dict[str, float], ...], init: str
                 ) -> dict:
-    """Scores of ``points`` on one log: {"scores": (P, 3), "six_d"} or {"error"}."""
+    """Scores of ``points`` on one log: {"scores": (P, 3), "six_d", "notes"} (the
+    reader's damage notes) or {"error"}."""
     from .evaluate import is_six_d
 
     try:
@@ -88,7 +89,8 @@ def sweep_share(display: str, load_path: str, inputs: TuneInputs, estimator: str
         return {"error": unusable(display, exc, load_path)}
     scores = np.array([score_params(prep, EstimatorSpec(estimator, {**fixed, **p}), init)
                        for p in points]).reshape(len(points), 3)
-    return {"scores": scores, "six_d": is_six_d(prep.recording, estimator)}
+    return {"scores": scores, "six_d": is_six_d(prep.recording, estimator),
+            "notes": damage_notes(prep.recording)}
 
 
 def shares(n_points: int, n_logs: int) -> list[slice]:
@@ -126,6 +128,7 @@ def sweep_on_cluster(files: Sequence[Path], inputs: TuneInputs, estimator: str,
     results = np.full((len(points), len(kept), 3), np.nan)
     done = np.ones(len(points), dtype=bool)
     six_d = False
+    notes: list[tuple[str, ...]] = []
     for column, f in enumerate(kept):
         for c, r in enumerate(per_file[f]):
             if r is None:
@@ -133,10 +136,11 @@ def sweep_on_cluster(files: Sequence[Path], inputs: TuneInputs, estimator: str,
                 continue
             results[cuts[c], column] = r["scores"]
             six_d |= bool(r["six_d"])
+        notes.append(next((tuple(r["notes"]) for r in per_file[f] if r is not None), ()))
     sweep = Sweep(estimator, tuple(axes), dict(fixed), tuple(str(files[f]) for f in kept),
                   points, results[:, :, 0], results[:, :, 1], results[:, :, 2],
                   time.perf_counter() - began, "inclination" if six_d else "total", done,
-                  outcome.interrupted)
+                  outcome.interrupted, tuple(notes))
     return sweep, left_out
 
 

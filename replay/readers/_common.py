@@ -6,7 +6,13 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from ..dataset import REFERENCE_KINDS, Reference, ReplayInputError, TimeCleanup
+from ..dataset import (
+    REFERENCE_KINDS,
+    Reference,
+    ReplayInputError,
+    TimeCleanup,
+    usable_quaternions,
+)
 from ..timebase import monotonic_mask
 
 
@@ -34,11 +40,14 @@ def trim_before_first_mag(t: np.ndarray, mag: np.ndarray, columns: list[np.ndarr
 
 def make_reference(t: np.ndarray, q: np.ndarray, kind: str, source: str,
                    north: str = "true", timing: str = "") -> Reference:
-    """A Reference with its time cleaned and its quaternions normalised (zero rows -> NaN)."""
+    """A Reference with its time cleaned and its quaternions normalised.
+
+    Rows that are no attitude (zero, not finite) are left as they are: the Reference
+    makes them NaN and counts them as damage, for the recording's notes.
+    """
     t, (q,), cleanup = clean_stream(np.asarray(t, float), np.asarray(q, float))
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        q = np.where(norm > 1e-6, q / norm, np.nan)
+    ok = usable_quaternions(q)
+    q[ok] /= np.linalg.norm(q[ok], axis=1, keepdims=True)
     return Reference(t=t, q=q, kind=kind, source=source, cleanup=cleanup, north=north,
                      timing=timing)
 

@@ -42,6 +42,7 @@ REF_COLUMNS = ("qw", "qx", "qy", "qz")
 
 def read(path: Path, reference: str = "auto") -> Recording:
     settings, header, body_start = _preamble(path)
+    _refuse_duplicate_columns(path, header)
     missing = [c for c in IMU_COLUMNS if c not in header]
     if missing:
         raise ReplayInputError(f"{path}: no IMU samples found (CSV lacks columns {missing}; "
@@ -50,8 +51,9 @@ def read(path: Path, reference: str = "auto") -> Recording:
     table, lines, ragged = _read_table(path, body_start, len(header))
     table, damage = _drop_non_numeric_rows(
         table, lambda: lines if lines is not None else _data_lines(path, body_start))
-    notes = tuple(n for n in (_dropped_note(ragged, "with a wrong number of cells"), damage)
-                  if n)
+    table, spikes = _drop_time_spikes(table, header.index("t"))
+    notes = tuple(n for n in (_dropped_note(ragged, "with a wrong number of cells"), damage,
+                              spikes) if n)
 
     def cols(names: tuple[str, ...]) -> np.ndarray | None:
         if not all(n in header for n in names):
@@ -65,7 +67,7 @@ def read(path: Path, reference: str = "auto") -> Recording:
         raise ReplayInputError(f"{path}: world must be NED/ENU, reference one of "
                                f"{REFERENCE_KINDS} and north one of {NORTH_KINDS}, got "
                                f"{world!r}, {kind!r}, {north!r}")
-    t_raw = table[:, 0 if header[0] == "t" else header.index("t")]
+    t_raw = table[:, header.index("t")]
     extra = [c for c in (cols(MAG_COLUMNS), cols(REF_COLUMNS), cols(("score",))) if c is not None]
     t, (gyr, acc, *rest), cleanup = clean_stream(
         t_raw, cols(("gx", "gy", "gz")), cols(("ax", "ay", "az")), *extra)
@@ -134,6 +136,41 @@ def _drop_non_numeric_rows(table: np.ndarray,
     bad = [k for k in suspects.tolist() if not all(map(_number_or_empty, lines[k][1]))]
     return (np.delete(table, bad, axis=0),
             _dropped_note([lines[k][0] for k in bad], "with non-numeric cells"))
+
+
+def _refuse_duplicate_columns(path: Path, header: list[str]) -> None:
+    """One column per name: with two ``gx`` columns only the first would be read, and
+    which of the two holds the gyro is a guess."""
+    first: dict[str, int] = {}
+    for number, name in enumerate(header, start=1):
+        if name and name in first:
+            raise ReplayInputError(f"{path}: duplicate column {name} in the header "
+                                   f"(columns {first[name]} and {number}); each name once")
+        first[name] = number
+
+
+def _drop_time_spikes(table: np.ndarray, column: int) -> tuple[np.ndarray, str]:
+    """The table without rows whose time is a lone spike, and a note saying how many.
+
+    A spike is a row later than the next two rows while the row before it and the next
+    row are in order: one corrupt stamp (1e9 among seconds). Left in, it is the running
+    maximum and every row after it would be dropped as going backwards. A clock that
+    really goes back (a reset) stays behind the row before the jump, so it is no spike and
+    the rows after it are dropped and counted as before; a row merely swapped with the
+    next one only hides that one row and is left to that count too.
+    """
+    t = table[:, column]
+    if t.shape[0] < 3:
+        return table, ""
+    before = np.concatenate(([-np.inf], t[:-2]))  # row k-1 for rows 0..n-2
+    after, after2 = t[1:], np.concatenate((t[2:], [np.inf]))
+    spike = np.flatnonzero((t[:-1] > after) & (t[:-1] > after2) & (before < after))
+    if not spike.size:
+        return table, ""
+    rows = "row" if spike.size == 1 else "rows"
+    return (np.delete(table, spike, axis=0),
+            f"CSV: {spike.size} {rows} with a time stamp out of line with the rows either "
+            f"side dropped (first: t = {t[spike[0]]:g} s, the next row's {after[spike[0]]:g} s)")
 
 
 def _dropped_note(line_numbers: list[int], why: str) -> str:

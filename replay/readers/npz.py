@@ -7,6 +7,12 @@ dataset's authors evaluate; only the ``movement`` samples are scored.
 
 from __future__ import annotations
 
+import struct
+import tokenize
+import zipfile
+import zlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -16,32 +22,32 @@ from ..dataset import Recording, ReplayInputError, TimeCleanup
 from ._common import make_reference, pick_reference
 
 REQUIRED = ("rate", "gyr", "acc")
+ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")  # a zip's first bytes (\x05\x06: empty)
+NPY_MAGIC = b"\x93NUMPY"
+LAYOUT = "a BROAD-style .npz has rate, gyr, acc[, mag, quat_ref, movement]"
+#: What reading a damaged archive raises: a bad CRC or directory (BadZipFile), a broken
+#: deflate stream (zlib.error), a member cut short (EOFError, struct.error), a damaged
+#: compression method (NotImplementedError), a garbled array header (TokenError) or one
+#: claiming a huge shape (MemoryError).
+DAMAGE = (zipfile.BadZipFile, zlib.error, EOFError, OSError, struct.error,
+          NotImplementedError, tokenize.TokenError, MemoryError)
 
 
 def read(path: Path, reference: str = "auto") -> Recording:
-    try:
-        data = np.load(path, allow_pickle=False)
-    except Exception as exc:
-        raise ReplayInputError(f"{path}: not a readable .npz file ({exc})") from exc
-    if not isinstance(data, np.lib.npyio.NpzFile):  # a lone .npy array renamed .npz
-        raise ReplayInputError(f"{path}: not a .npz archive (a single .npy array); a "
-                               f"BROAD-style .npz has rate, gyr, acc[, mag, quat_ref, "
-                               f"movement]")
-    with data:
+    with _open(path) as data:
         missing = [k for k in REQUIRED if k not in data.files]
         if missing:
             raise ReplayInputError(f"{path}: no IMU samples found (missing keys {missing}; "
-                                   f"a BROAD-style .npz has rate, gyr, acc[, mag, quat_ref, "
-                                   f"movement])")
+                                   f"{LAYOUT})")
         try:
-            rate = _scalar(data["rate"])
-            gyr = np.asarray(data["gyr"], dtype=float)
-            acc = np.asarray(data["acc"], dtype=float)
-            mag = np.asarray(data["mag"], dtype=float) if "mag" in data.files else None
-            q_ref = (np.asarray(data["quat_ref"], dtype=float)
-                     if "quat_ref" in data.files else None)
-            movement = (np.asarray(data["movement"], dtype=bool)
-                        if "movement" in data.files else None)
+            rate = _scalar(_member(path, data, "rate"))
+            gyr = np.asarray(_member(path, data, "gyr"), dtype=float)
+            acc = np.asarray(_member(path, data, "acc"), dtype=float)
+            mag = _optional(path, data, "mag", float)
+            q_ref = _optional(path, data, "quat_ref", float)
+            movement = _optional(path, data, "movement", bool)
+        except ReplayInputError:
+            raise
         except (TypeError, ValueError) as exc:  # text or object arrays, a vector rate
             raise ReplayInputError(f"{path}: not a BROAD-style .npz ({exc})") from exc
     if not (np.isfinite(rate) and rate > 0):
@@ -57,6 +63,63 @@ def read(path: Path, reference: str = "auto") -> Recording:
                      body="sensor", source="npz gyr/acc/mag", reference=ref,
                      score_mask=movement, cleanup=TimeCleanup(kept=len(t)),
                      warnings=(warning,) if warning else (), references=references)
+
+
+@contextmanager
+def _open(path: Path) -> Iterator[np.lib.npyio.NpzFile]:
+    """The archive, after checking it is one: numpy reads any other file as a pickle and
+    its refusal invites the user to load it with ``allow_pickle``, unsafe for a file that
+    is merely misnamed (a tlog or CSV called .npz). The file is opened here so that it is
+    closed also when numpy fails half-way (it leaves its own handle open then)."""
+    try:
+        f = path.open("rb")
+    except OSError as exc:
+        raise ReplayInputError(f"{path}: cannot read ({exc.strerror})") from exc
+    with f:
+        head = f.read(len(NPY_MAGIC))
+        if head.startswith(NPY_MAGIC):
+            raise ReplayInputError(f"{path}: not a .npz archive (a single .npy array); "
+                                   f"{LAYOUT}")
+        if not head.startswith(ZIP_MAGIC):
+            what = "an empty file" if not head else "not a .npz (zip) archive"
+            raise ReplayInputError(f"{path}: {what}; {LAYOUT}")
+        f.seek(0)
+        try:
+            data = np.load(f, allow_pickle=False)
+        except (*DAMAGE, ValueError) as exc:
+            raise ReplayInputError(f"{path}: not a readable .npz ({_reason(exc)})") from exc
+        with data:
+            yield data
+
+
+def _member(path: Path, data: np.lib.npyio.NpzFile, key: str) -> np.ndarray:
+    """One array, read and checked: members are decompressed only here, so this is where
+    a damaged archive shows; a complex array would lose its imaginary part (and warn)
+    when made float."""
+    try:
+        value = data[key]
+    except DAMAGE as exc:
+        raise ReplayInputError(f"{path}: not a readable .npz ({key}: {_reason(exc)})") from exc
+    if np.iscomplexobj(value):
+        raise ReplayInputError(f"{path}: {key} holds complex numbers ({value.dtype}); "
+                               f"expected real numbers")
+    return value
+
+
+def _optional(path: Path, data: np.lib.npyio.NpzFile, key: str, dtype: type
+              ) -> np.ndarray | None:
+    """An optional member as ``dtype``, None when the archive lacks it."""
+    if key not in data.files:
+        return None
+    return np.asarray(_member(path, data, key), dtype=dtype)
+
+
+def _reason(exc: BaseException) -> str:
+    """"BadZipFile: Bad CRC-32 ..." on one line: zlib's and zipfile's messages do not say
+    which kind of damage on their own."""
+    kind = type(exc)
+    name = kind.__name__ if kind.__module__ == "builtins" else f"{kind.__module__}.{kind.__name__}"
+    return f"{name}: {' '.join(str(exc).split())}"
 
 
 def _scalar(value: np.ndarray) -> float:

@@ -22,8 +22,9 @@ import datetime as _dt
 import math
 import os
 from collections import Counter, defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,6 +35,9 @@ from ..dataset import Position, Recording, Reference, ReplayInputError, StateEve
 from ..timebase import sample_and_hold
 from ._common import clean_stream, make_reference, other_autopilot, pick_reference, require_imu
 from .velocity import VelocityRows, place_velocity
+
+if TYPE_CHECKING:
+    from pymavlink.dialects.v20.ardupilotmega import MAVLink
 
 os.environ["MAVLINK20"] = "1"
 
@@ -51,6 +55,7 @@ UINT16_UNKNOWN = 65535
 MAVLINK1_STX, MAVLINK2_STX = 0xFE, 0xFD
 FRAME_HEADER_BYTES = 10  # what _frame reads: a MAVLink 2 header up to the message id
 STAMP_JUMP_US = 86_400_000_000  # consecutive arrival stamps a day apart: misframed record
+CLOCK_CONFIRM_RECORDS = 3  # whole records in a row that make such a jump the recorder's
 GPS_FIX_3D = 3
 MAV_TYPE_GCS = 6
 MAV_AUTOPILOT_INVALID = 8
@@ -63,7 +68,8 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
          reference: str = "auto") -> Recording:
     if imu is not None and imu.upper() not in IMU_MESSAGES:
         raise ReplayInputError(f"unknown IMU message {imu!r}; valid: {list(IMU_MESSAGES)}")
-    messages, unreadable, tail = _collect(path)
+    walk = _collect(path)
+    messages, unreadable, tail = walk.messages, walk.unreadable, walk.tail
     damage = f"file ends mid-record: last {tail} bytes ignored" if tail else ""
     imu_type, src = _pick_imu(messages, imu.upper() if imu else None, path, damage)
     rows = [m for m in messages[imu_type] if (m.get_srcSystem(), m.get_srcComponent()) == src]
@@ -76,6 +82,8 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
     if unreadable:
         notes.append(f"skipped {unreadable} unreadable stretch(es) of the log (bad CRC, "
                      f"cut frames or bytes between records)")
+    if walk.jumps:
+        notes.append(walk.jump_note())
     warnings: list[str] = []
     profile_name = None
     if imu_type == "RAW_IMU":
@@ -202,9 +210,31 @@ def _longest_session(t: np.ndarray, arrival: np.ndarray
     return keep, window, note
 
 
-def _collect(path: Path) -> tuple[dict[str, list], int, int]:
-    """The messages replay uses, by type, how many unreadable stretches were skipped, and
-    how many bytes at the end were a record cut short (the recorder stopped mid-write).
+@dataclass
+class Walk:
+    """What reading a tlog's records gave: the messages replay uses, by type, how many
+    unreadable stretches were skipped, how many bytes at the end were a record cut short
+    (the recorder stopped mid-write), and where the recorder's clock jumped."""
+
+    messages: dict[str, list]
+    unreadable: int = 0
+    tail: int = 0
+    records: int = 0
+    jumps: list[tuple[int, int]] = field(default_factory=list)  # (record, jump µs)
+
+    def jump_note(self) -> str:
+        """The clock jumps in the recording's notes: the records after them are kept."""
+        first, _ = self.jumps[0]
+        largest = max((jump for _, jump in self.jumps), key=abs)
+        return (f"the recorder's clock (tlog arrival stamps) jumped {len(self.jumps)} "
+                f"time(s), by up to {largest * 1e-6 / 86_400:+.1f} days (first at record "
+                f"{first + 1} of {self.records}): the {self.records - first} records from "
+                f"there are kept, their arrival times moved to follow on from before the "
+                f"jump")
+
+
+def _collect(path: Path) -> Walk:
+    """The messages replay uses, by type, and what the walk met on the way (:class:`Walk`).
 
     Each message gets ``_timestamp`` (arrival, s) and ``_order``, its record's position.
 
@@ -213,6 +243,12 @@ def _collect(path: Path) -> tuple[dict[str, list], int, int]:
     pymavlink's generic log reader, which decodes everything. A record that does not
     parse (bad CRC, bytes lost) is skipped: the walk resumes at the next position that
     looks like a record (a start byte after a time stamp close to the last good one).
+
+    A stamp more than a day from the last one is a misframed record, unless whole
+    records with good CRCs follow on from it: then the recorder's clock was set (a
+    companion computer taking the network's time mid-flight) and the walk goes on. The
+    arrival times only order the messages and tell which belong to a session, so the
+    later ones are moved by the jump to follow on from the earlier ones.
     """
     from pymavlink.dialects.v20 import ardupilotmega as common  # common + SIMSTATE
 
@@ -222,17 +258,21 @@ def _collect(path: Path) -> tuple[dict[str, list], int, int]:
         raise ReplayInputError(f"{path}: cannot read ({exc.strerror})") from exc
     wanted = set(IMU_MESSAGES + REFERENCE_MESSAGES + VELOCITY_MESSAGES + OTHER_MESSAGES)
     ids = {mid for mid, cls in common.mavlink_map.items() if cls.msgname in wanted}
-    mav = common.MAVLink(None)
-    out: dict[str, list] = defaultdict(list)
-    i, order, size, last, bad = 0, 0, len(data), None, 0
+    mav, checker = common.MAVLink(None), common.MAVLink(None)
+    walk = Walk(defaultdict(list))
+    i, size, last, shift = 0, len(data), None, 0
     while i + 16 <= size:
         stamp = int.from_bytes(data[i:i + 8], "big")
         frame = _frame(data, i + 8)
         if frame is None and i + 8 + FRAME_HEADER_BYTES > size:
             break  # the end of the file cuts the frame's header
-        if frame is None or (last is not None and abs(stamp - last) > STAMP_JUMP_US):
-            bad += 1
-            i = _resync(data, i + 1, last)
+        far = last is not None and abs(stamp - last) > STAMP_JUMP_US
+        if frame is not None and far and _records_follow(data, i, checker):
+            walk.jumps.append((walk.records, stamp - last))
+            shift += stamp - last
+        elif frame is None or far:
+            walk.unreadable += 1
+            i = _resync(data, i + 1, last, checker)
             continue
         length, msgid = frame
         end = i + 8 + length
@@ -242,16 +282,17 @@ def _collect(path: Path) -> tuple[dict[str, list], int, int]:
             try:
                 msg = mav.decode(bytearray(data[i + 8:end]))
             except Exception:  # pymavlink raises MAVError and struct errors on bad frames
-                bad += 1
-                i = _resync(data, i + 1, last)
+                walk.unreadable += 1
+                i = _resync(data, i + 1, last, checker)
                 continue
-            msg._timestamp = stamp * 1e-6
-            msg._order = order
-            out[msg.get_type()].append(msg)
+            msg._timestamp = (stamp - shift) * 1e-6
+            msg._order = walk.records
+            walk.messages[msg.get_type()].append(msg)
         last = stamp
-        order += 1
+        walk.records += 1
         i = end
-    return out, bad, size - i
+    walk.tail = size - i
+    return walk
 
 
 def _frame(data: bytes, k: int) -> tuple[int, int] | None:
@@ -266,15 +307,45 @@ def _frame(data: bytes, k: int) -> tuple[int, int] | None:
     return None
 
 
-def _resync(data: bytes, k: int, last: int | None) -> int:
-    """The next position from ``k`` where a record plausibly starts."""
+def _resync(data: bytes, k: int, last: int | None, checker: MAVLink) -> int:
+    """The next position from ``k`` where a record plausibly starts: a start byte after a
+    stamp near the last good one, or records that follow on from each other on a clock
+    that jumped (see :func:`_records_follow`; the recorder may have restarted mid-record
+    with another time)."""
     while k + 16 <= len(data):
         if data[k + 8] in (MAVLINK1_STX, MAVLINK2_STX):
             stamp = int.from_bytes(data[k:k + 8], "big")
-            if last is None or abs(stamp - last) <= STAMP_JUMP_US:
+            if (last is None or abs(stamp - last) <= STAMP_JUMP_US
+                    or _records_follow(data, k, checker)):
                 return k
         k += 1
     return len(data)
+
+
+def _records_follow(data: bytes, k: int, checker: MAVLink) -> bool:
+    """Whether ``CLOCK_CONFIRM_RECORDS`` whole records start at ``k``, one after the
+    other, each a MAVLink frame that decodes with a good CRC and a stamp within a day of
+    the first's. Bytes that merely look like a record header (a misframe) would need a
+    CRC right by chance, and the genuine records after them have stamps near the last
+    good one, not near the misframed one: a far stamp that passes is the recorder's
+    clock being set, not damage.
+
+    ``checker``: a pymavlink ``MAVLink`` parser of its own, so that these trial decodes
+    leave the walk's parser (its sequence and loss counters) alone.
+    """
+    first = int.from_bytes(data[k:k + 8], "big")
+    for _ in range(CLOCK_CONFIRM_RECORDS):
+        frame = _frame(data, k + 8)
+        if frame is None or k + 8 + frame[0] > len(data):
+            return False
+        if abs(int.from_bytes(data[k:k + 8], "big") - first) > STAMP_JUMP_US:
+            return False
+        try:
+            checker.decode(bytearray(data[k + 8:k + 8 + frame[0]]))
+        except Exception:  # pymavlink raises MAVError and struct errors on bad frames
+            return False
+        k += 8 + frame[0]
+    return True
 
 
 def _pick_imu(messages: dict[str, list], imu: str | None, path: Path,

@@ -205,16 +205,16 @@ class Firmware:
         acc = frd_from_chip(rec.acc_counts) * (G / self.accel_lsb_per_g)
         gyr = np.radians(frd_from_chip(rec.gyr_counts) / self.gyro_lsb_per_dps)
         mag = frd_from_chip(rec.mag_counts) / self.mag_lsb_per_gauss
-        milli = np.hstack([_int16_array(acc / G * 1000.0), _int16_array(gyr * 1000.0),
-                           _int16_array(mag * 1000.0)]).tolist()
+        # mG, mrad/s, mGauss, FRD; ArduPilot's float -> int16 conversion truncates toward
+        # zero (RAW_IMU and SCALED_IMU alike), the others' round
+        cut = self.personality.name == "ardupilot"
+        milli = np.hstack([_int16_array(acc / G * 1000.0, truncate=cut),
+                           _int16_array(gyr * 1000.0, truncate=cut),
+                           _int16_array(mag * 1000.0, truncate=cut)]).tolist()
         if kind == "RAW_IMU":
             time_us = rec.time_us.tolist()
-            if self.personality.name == "ardupilot":  # mG, mrad/s, mGauss, FRD
-                # truncated toward zero, as ArduPilot's float -> int16 conversion does
-                cut = np.hstack([_int16_array(acc / G * 1000.0, truncate=True),
-                                 _int16_array(gyr * 1000.0, truncate=True),
-                                 _int16_array(mag * 1000.0, truncate=True)]).tolist()
-                return lambda k: mavlink.MAVLink_raw_imu_message(time_us[k], *cut[k], 0,
+            if cut:  # ArduPilot's RAW_IMU: the same units as its SCALED_IMU
+                return lambda k: mavlink.MAVLink_raw_imu_message(time_us[k], *milli[k], 0,
                                                                  temp[k])
             rows = np.hstack([rec.acc_counts, rec.gyr_counts, rec.mag_counts]).tolist()
             return lambda k: mavlink.MAVLink_raw_imu_message(time_us[k], *rows[k], 0, temp[k])

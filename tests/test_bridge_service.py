@@ -400,3 +400,21 @@ async def test_a_stream_of_unusable_samples_is_not_called_a_lost_link(caplog):
                "(refused: nonfinite " in m for m in text), text
     assert not any("link lost" in m for m in text), text
     v.close()
+
+
+@async_test
+async def test_an_ardupilot_heartbeat_makes_its_scaled_imu_read_as_truncated():
+    """What an autopilot's SCALED_IMU integers mean follows its heartbeat: ArduPilot's
+    are truncated (read as the middle of their step), PX4's are not."""
+    async with running_bridge(out_rate=0.0, estimators=["mahony"], vehicles=[1, 2]) as bridge:
+        ardupilot, px4 = MavSender(bridge.port, sysid=1), MavSender(bridge.port, sysid=2)
+        await ardupilot.start()
+        await px4.start()
+        ardupilot.send(mavlink.MAVLink_heartbeat_message(
+            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4, 3))
+        px4.send(autopilot_heartbeat())
+        assert await wait_until(lambda: bridge.ingest.scaled_truncated(1))
+        await asyncio.sleep(0.2)
+        assert not bridge.ingest.scaled_truncated(2)
+    ardupilot.close()
+    px4.close()

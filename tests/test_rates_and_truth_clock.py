@@ -174,6 +174,52 @@ def test_truncated_counts_are_read_as_the_middle_of_what_they_stand_for(board, h
         assert np.allclose(got.mag, [0.1005, -0.2005, 0.0], rtol=1e-12, atol=0)
 
 
+SCALED_COUNTS = (3, -3, 1000, 5, -7, 0, 100, -200, 0)  # mG, mrad/s, mGauss
+
+
+def _scaled_imu2_tlog(path: Path, autopilot: int, n: int = 400) -> Path:
+    """A tlog of one vehicle's HEARTBEAT and SCALED_IMU2 at 250 Hz (real encoding)."""
+    sender = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    records = []
+    for k in range(n):
+        msgs = [sender.scaled_imu2_encode(1000 + 4 * k, *SCALED_COUNTS, 2500)]
+        if k % 250 == 0:
+            msgs.insert(0, sender.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, autopilot,
+                                                   0, 0, 4))
+        for m in msgs:
+            records.append((1_700_000_000_000_000 + 4000 * k).to_bytes(8, "big")
+                           + m.pack(sender))
+    path.write_bytes(b"".join(records))
+    return path
+
+
+@pytest.mark.parametrize("autopilot", [mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                       mavlink.MAV_AUTOPILOT_PX4])
+def test_ardupilots_scaled_imu_is_read_as_the_middle_of_its_step(autopilot, tmp_path):
+    """ArduPilot's SCALED_IMU is made like its RAW_IMU (``gyro * 1000`` into int16,
+    truncated): read as k ± ½, live and in the replay; another autopilot's as k."""
+    from replay.readers import load
+
+    half = 0.5 if autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA else 0.0
+    counts = np.array(SCALED_COUNTS, dtype=float)
+    expected = (counts + half * np.sign(counts)) * 1e-3
+    sender = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    ingest = Ingest(board_profile("gy86"))
+    ingest.set_scaled_truncated(1, bool(half))
+    samples = []
+    for k in range(20):
+        frame = sender.scaled_imu2_encode(1000 + 4 * k, *SCALED_COUNTS, 2500).pack(sender)
+        m = mavlink.MAVLink(None).parse_buffer(frame)[0]
+        samples += ingest.handle_all(m, 1.0 + 0.004 * k, ingest.key_of(m))
+    assert np.allclose(samples[-1].gyr, expected[3:6], rtol=1e-12, atol=0)
+    assert np.allclose(samples[-1].mag, expected[6:9], rtol=1e-12, atol=0)
+    rec = load(_scaled_imu2_tlog(tmp_path / "scaled.tlog", autopilot))
+    assert rec.source == "SCALED_IMU2"
+    assert np.allclose(rec.gyr[-1], expected[3:6], rtol=1e-12, atol=0)
+    assert np.allclose(rec.acc[-1], expected[0:3] * 9.80665, rtol=1e-6, atol=0)
+    assert any("middle of their step" in n for n in rec.notes) == bool(half)
+
+
 def test_an_arducopter_tlog_replays_at_its_mean_rate():
     from replay.readers import load
 

@@ -237,6 +237,8 @@ class MessageRouter:
                  autopilot, vehicle.autopilot_compid, type_name(vehicle.mav_type),
                  link.name, f"{addr[0]}:{addr[1]}" if addr else "-")
         vehicle.autopilot = autopilot
+        self.ingest.set_scaled_truncated(vehicle.sysid,
+                                         autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
         if self.cfg.board is None:
             board = board_for(autopilot)
             if self.ingest.set_board(vehicle.sysid, board_profile(board)):

@@ -66,6 +66,11 @@ _SCALED_IMU_INDEX = {ID_SCALED_IMU: 0, ID_SCALED_IMU2: 1, ID_SCALED_IMU3: 2}
 _ONE = (1.0,)  # appended to a message's numbers for the affine (calibrated) maps
 
 
+def _half_step_out(counts: tuple[int, ...]) -> tuple[float, ...]:
+    """Truncated integers as the middle of what they stand for: k ± ½, 0 as 0."""
+    return tuple(c + 0.5 if c > 0 else c - 0.5 if c < 0 else 0.0 for c in counts)
+
+
 def _affine(matrix: np.ndarray, offset: np.ndarray) -> np.ndarray:
     """3x4 [matrix | offset]: ``v -> matrix @ v + offset`` as one multiply on (v, 1)."""
     return np.column_stack([matrix, offset])
@@ -123,6 +128,9 @@ class Ingest:
         #: RAW_IMU board profile per system id where it is not ``profile`` (the
         #: vehicle's autopilot decides what its integers mean; see set_board).
         self._raw_by_sysid: dict[int, _RawMap] = {}
+        #: system ids whose SCALED_IMU integers are truncated, not rounded (ArduPilot's:
+        #: see imu.boards.BoardProfile.truncated), read as the middle of their step
+        self._scaled_truncated: set[int] = set()
         self._scaled_gyr = _affine(gyr_m @ rot * 1e-3, gyr_c)
         self._scaled_acc = _affine(acc_m @ rot * MG, acc_c)
         self._scaled_mag = _affine(mag_m @ rot * 1e-3, mag_c)
@@ -164,6 +172,17 @@ class Ingest:
             return False
         self._raw_by_sysid[sysid] = self._raw_map(profile)
         return True
+
+    def scaled_truncated(self, sysid: int) -> bool:
+        return sysid in self._scaled_truncated
+
+    def set_scaled_truncated(self, sysid: int, truncated: bool) -> None:
+        """Whether this vehicle's SCALED_IMU integers are truncated toward zero (its
+        autopilot decides; ArduPilot's are)."""
+        if truncated:
+            self._scaled_truncated.add(sysid)
+        else:
+            self._scaled_truncated.discard(sysid)
 
     def _source(self, key: SourceKey, tick_s: float, wrap: int) -> SourceState:
         state = self.sources.get(key)
@@ -248,10 +267,14 @@ class Ingest:
         if max(map(abs, g)) > self._scaled_gyr_max or max(map(abs, a)) > self._scaled_acc_max:
             src.counts["implausible"] += 1
             return []
-        gyr = self._scaled_gyr @ (g + _ONE)
-        acc = self._scaled_acc @ (a + _ONE)
         mg = (m.xmag, m.ymag, m.zmag)
-        mag = None if mg == (0, 0, 0) else self._scaled_mag @ (mg + _ONE)
+        if key.sysid in self._scaled_truncated:
+            g_si, a_si, mg_si = _half_step_out(g), _half_step_out(a), _half_step_out(mg)
+        else:
+            g_si, a_si, mg_si = g, a, mg
+        gyr = self._scaled_gyr @ (g_si + _ONE)
+        acc = self._scaled_acc @ (a_si + _ONE)
+        mag = None if mg == (0, 0, 0) else self._scaled_mag @ (mg_si + _ONE)
         return self._stamp(src, key, m.time_boot_ms, 1e-3,
                            _Pending(gyr, acc, mag, arrival, ()), g + a)
 

@@ -59,6 +59,7 @@ CLOCK_CONFIRM_RECORDS = 3  # whole records in a row that make such a jump the re
 GPS_FIX_3D = 3
 MAV_TYPE_GCS = 6
 MAV_AUTOPILOT_INVALID = 8
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 #: MAV_COMP_ID_ONBOARD_COMPUTER..4: companions (this bridge sends from 191). Their
 #: attitude in a record is a companion's estimate, never the autopilot's own.
 COMPANION_COMPONENTS = range(191, 195)
@@ -92,7 +93,13 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
         notes.append(choice.note())
         if (w := choice.warning()) is not None:
             warnings.append(w)
-    t, gyr, acc, mag = _imu_arrays(imu_type, rows, profile_name)
+    truncated = imu_type.startswith("SCALED_IMU") and any(
+        m.autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA
+        for m in _same_component(messages.get("HEARTBEAT", []), src))
+    if truncated:
+        notes.append(f"{imu_type} integers read as the middle of their step (ArduPilot "
+                     f"truncates them toward zero)")
+    t, gyr, acc, mag = _imu_arrays(imu_type, rows, profile_name, truncated)
     if imu_type != "RAW_IMU" and (w := magnitude_warning(acc, imu_type)) is not None:
         warnings.append(w)
     keep, window, note = _longest_session(t, np.array([m._timestamp for m in rows]))
@@ -362,7 +369,11 @@ def _fields(rows: list, *names: str) -> np.ndarray:
     return np.array([[getattr(m, n) for n in names] for m in rows], dtype=float)
 
 
-def _imu_arrays(kind: str, rows: list, board: str | None) -> tuple[np.ndarray, ...]:
+def _imu_arrays(kind: str, rows: list, board: str | None, truncated: bool = False
+                ) -> tuple[np.ndarray, ...]:
+    """Times [s] and FRD gyro [rad/s], specific force [m/s²], field [gauss] of the IMU
+    messages. ``truncated``: SCALED_IMU integers made by truncation toward zero, read as
+    the middle of their step (imu.boards.BoardProfile.truncated)."""
     gyro_names = ("xgyro", "ygyro", "zgyro")
     acc_names = ("xacc", "yacc", "zacc")
     mag_names = ("xmag", "ymag", "zmag")
@@ -387,8 +398,13 @@ def _imu_arrays(kind: str, rows: list, board: str | None) -> tuple[np.ndarray, .
                 profile.accel(_fields(rows, *acc_names)), profile.mag(_fields(rows, *mag_names)))
     # SCALED_IMU/2/3: mrad/s, mG, mgauss, FRD (MAVLink common.xml)
     t = _fields(rows, "time_boot_ms")[:, 0] * 1e-3
-    return (t, _fields(rows, *gyro_names) * 1e-3, _fields(rows, *acc_names) * 1e-3 * G,
-            _fields(rows, *mag_names) * 1e-3)
+
+    def numbers(names: tuple[str, ...]) -> np.ndarray:
+        v = _fields(rows, *names)
+        return v + 0.5 * np.sign(v) if truncated else v
+
+    return (t, numbers(gyro_names) * 1e-3, numbers(acc_names) * 1e-3 * G,
+            numbers(mag_names) * 1e-3)
 
 
 def _message_times(rows: list, field: str, scale: float, clock: BoardClock

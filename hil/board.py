@@ -9,6 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 
+#: The board clock is unsigned and also goes out as a uint32 millisecond time_boot_ms:
+#: clock faults that step it below boot or past 2**32 ms hold it at the limit (a step
+#: backwards cannot make time since boot negative), rather than packing garbage.
+MAX_BOARD_US = (2**32 - 1) * 1000
+
 
 class BoardClock:
     def __init__(self, boot_time_s: float, drift_ppm: float, jitter_us: float,
@@ -25,4 +30,4 @@ class BoardClock:
         us = self.boot_us + np.round(t * 1e6 * self.scale)
         if jitter and self.jitter_us > 0.0:
             us += np.round(self.rng.uniform(0.0, self.jitter_us, t.shape))
-        return (us + fault_offset_us).astype(np.int64)
+        return np.clip(us + fault_offset_us, 0, MAX_BOARD_US).astype(np.int64)

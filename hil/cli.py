@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import json
 import math
+import re
 import signal
 import sys
 from dataclasses import fields
@@ -17,7 +18,7 @@ from bridge.app.config_checks import check_output_file
 
 from .config import IMU_MESSAGES, EmulatorConfig
 from .environment import HOME_ALT_M, HOME_LAT_DEG, HOME_LON_DEG, Environment
-from .faults import FaultConfig
+from .faults import FaultConfig, FaultSettingError
 from .gps import GpsConfig
 from .link import Emulator
 from .motion import PROFILE_NAMES
@@ -26,6 +27,20 @@ from .personality import AUTOPILOTS
 from .source import SampleSource
 
 PACING_SWITCH_INTERVAL_S = 1e-3
+#: What argparse takes for a negative number (so not for an option) on the hil command
+#: line: its own ``-5`` / ``-.5`` plus a comma list that starts with one, so that
+#: ``--home -33.9,151.2`` works like ``--home=-33.9,151.2`` (no hil option looks like it).
+NEGATIVE_VALUE = re.compile(r"^-\d+$|^-\d*\.\d+$|^-\.?\d[\d.eE+-]*(,[-+\d.eE]*)+$")
+
+
+def non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return value
 
 FAULT_HELP = {
     "loss": "probability a datagram is dropped",
@@ -65,7 +80,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rate", type=float, default=1000.0, help="IMU rate [Hz] (default 1000)")
     p.add_argument("--duration", type=seconds, default=0.0,
                    help="seconds of stream; 0 runs until interrupted (default)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--fast", action="store_true", help="send as fast as possible (tests)")
     p.add_argument("--autopilot", default="stm32", metavar="NAME",
                    help=f"personality on the link: {', '.join(AUTOPILOTS)} (default stm32, the "
@@ -104,6 +119,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                             default=f.default, metavar="X",
                             help=f"{FAULT_HELP[f.name]} (default {f.default})")
     p.set_defaults(func=_run)
+    # argparse (3.11) has no public switch for this; its own matcher is an attribute.
+    p._negative_number_matcher = NEGATIVE_VALUE
 
 
 def parse_target(text: str) -> tuple[str, int]:
@@ -126,12 +143,24 @@ def parse_home(text: str | None) -> Environment:
     except ValueError:
         values = []
     if len(values) not in (2, 3) or not all(math.isfinite(v) for v in values):
-        raise ValueError(f"home must look like LAT,LON[,ALT], got {text!r}")
+        raise ValueError(f"--home must look like LAT,LON[,ALT], got {text!r}")
     alt = values[2] if len(values) == 3 else HOME_ALT_M
-    return Environment(latitude_deg=values[0], longitude_deg=values[1], ground_altitude_m=alt)
+    try:
+        return Environment(latitude_deg=values[0], longitude_deg=values[1],
+                           ground_altitude_m=alt)
+    except ValueError as exc:
+        raise ValueError(f"--home: {exc}") from exc
 
 
 def config_from_args(args: argparse.Namespace) -> EmulatorConfig:
+    try:
+        return _config_from_args(args)
+    except FaultSettingError as exc:  # name the option, as argparse does
+        option = "--" + exc.setting.replace("_", "-")
+        raise ValueError(f"argument {option}: {exc}") from exc
+
+
+def _config_from_args(args: argparse.Namespace) -> EmulatorConfig:
     faults = FaultConfig(**{f.name: getattr(args, f"fault_{f.name}") for f in fields(FaultConfig)})
     gps = (GpsConfig(rate_hz=args.gps_rate, latency_s=args.gps_latency) if args.gps else None)
     return EmulatorConfig(

@@ -6,7 +6,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 from .environment import Environment
-from .faults import FaultConfig
+from .faults import EVENT_RATES, FaultConfig, FaultSettingError
 from .gps import GpsConfig
 from .multirotor import DEFAULT_DRAG_PER_S
 from .personality import personality
@@ -78,6 +78,19 @@ class EmulatorConfig:
         if not abs(self.clock_drift_ppm) <= MAX_CLOCK_DRIFT_PPM:
             raise ValueError(f"clock drift must be within ±{MAX_CLOCK_DRIFT_PPM:g} ppm, got "
                              f"{self.clock_drift_ppm}")
+        for name in EVENT_RATES:  # a probability per IMU sample: at most one event each
+            if getattr(self.faults, name) > self.imu_rate_hz:
+                raise FaultSettingError(name, f"fault setting {name} must be at most the IMU "
+                                              f"rate {self.imu_rate_hz:g} Hz, got "
+                                              f"{getattr(self.faults, name):g}")
+        # Vibration is drawn at the MPU6050's internal sample rate: above its Nyquist
+        # frequency the sinusoid is sampled as garbage (at 1e308 Hz, NaN).
+        nyquist = self.mpu.internal_rate_hz / 2.0
+        if self.faults.vibration_hz > nyquist:
+            raise FaultSettingError("vibration_hz", f"fault setting vibration_hz must be at most "
+                                                    f"{nyquist:g} Hz (half the MPU6050's "
+                                                    f"internal rate), got "
+                                                    f"{self.faults.vibration_hz:g}")
         if self.truth_rate_hz is not None and not 0 < self.truth_rate_hz <= self.imu_rate_hz:
             raise ValueError("truth rate must be > 0 and not above the IMU rate")
 

@@ -36,6 +36,10 @@ ISA_EXPONENT = 5.25588
 HOME_LAT_DEG = 47.397742
 HOME_LON_DEG = 8.545594
 HOME_ALT_M = 488.0
+#: Home altitudes [m AMSL]: the Dead Sea shore is at -430 m; the barometer follows the
+#: ISA troposphere, valid up to 11 km (its formula has no real value above 44 km).
+MIN_HOME_ALT_M = -500.0
+MAX_HOME_ALT_M = 11_000.0
 #: The emulator's calendar date (fixed, so a seed gives the same field every day).
 DEFAULT_DATE = datetime.date(2026, 1, 1)
 
@@ -64,9 +68,11 @@ class Environment:
             if not (self.field_ut > 0 and -90 <= self.inclination_deg <= 90):
                 raise ValueError("field intensity must be > 0 and inclination within ±90°")
         if not (-90.0 <= self.latitude_deg <= 90.0 and -180.0 <= self.longitude_deg <= 180.0
-                and math.isfinite(self.ground_altitude_m)):
+                and MIN_HOME_ALT_M <= self.ground_altitude_m <= MAX_HOME_ALT_M):
             raise ValueError(f"no such home position: lat {self.latitude_deg}, "
-                             f"lon {self.longitude_deg}, alt {self.ground_altitude_m}")
+                             f"lon {self.longitude_deg}, alt {self.ground_altitude_m} (latitude "
+                             f"±90°, longitude ±180°, altitude {MIN_HOME_ALT_M:g}.."
+                             f"{MAX_HOME_ALT_M:g} m AMSL)")
 
     def earth_field(self) -> tuple[float, float, float]:
         """(intensity µT, inclination °, declination °) of the field at home."""

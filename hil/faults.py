@@ -25,6 +25,42 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
+from .sensors.hmc5883l import LSB_PER_GAUSS, OUTPUT_MAX
+from .sensors.mpu6050 import ACCEL_RANGE_G, GYRO_RANGE_DPS
+
+#: Largest clock jump / step [s]. A glitch of more than a day is no glitch but another
+#: clock; and the board's time also goes out as a uint32 millisecond time_boot_ms
+#: (49.7 days), which a handful of day-long jumps already spans.
+MAX_CLOCK_STEP_S = 86_400.0
+#: Longest saturation / stuck / magnetic event [s]: an hour is already "broken sensor";
+#: beyond a day the event outlasts any run.
+MAX_EVENT_DURATION_S = 86_400.0
+#: Largest sizes: the widest full scale of the emulated chips (MPU6050 ±16 g at
+#: AFS_SEL 3, ±2000 °/s at FS_SEL 3; HMC5883L 2047 counts at 230 LSB/G, ~8.9 G). Beyond
+#: it every reading is pinned at the limit whatever the size, so a larger value is a typo.
+MAX_SIZE = {
+    "vibration_g": ACCEL_RANGE_G[-1],
+    "vibration_dps": GYRO_RANGE_DPS[-1],
+    "gyro_bias_step_dps": GYRO_RANGE_DPS[-1],
+    "mag_disturbance_gauss": round(OUTPUT_MAX / LSB_PER_GAUSS[-1], 1),
+    "time_jump_s": MAX_CLOCK_STEP_S,
+    "time_backwards_s": MAX_CLOCK_STEP_S,
+    "saturation_duration_s": MAX_EVENT_DURATION_S,
+    "stuck_duration_s": MAX_EVENT_DURATION_S,
+    "mag_disturbance_duration_s": MAX_EVENT_DURATION_S,
+}
+#: Events per second; the emulator refuses any above the IMU rate (one per sample).
+EVENT_RATES = ("time_jump_rate_hz", "time_backwards_rate_hz", "saturation_rate_hz",
+               "stuck_rate_hz", "mag_disturbance_rate_hz", "gyro_bias_step_rate_hz")
+
+
+class FaultSettingError(ValueError):
+    """A fault setting out of range; ``setting`` is the field's name."""
+
+    def __init__(self, setting: str, message: str):
+        super().__init__(message)
+        self.setting = setting
+
 
 @dataclass(frozen=True)
 class FaultConfig:
@@ -57,7 +93,12 @@ class FaultConfig:
         for f in fields(self):
             v = getattr(self, f.name)
             if not (math.isfinite(v) and v >= 0.0):
-                raise ValueError(f"fault setting {f.name} must be finite and >= 0, got {v}")
+                raise FaultSettingError(
+                    f.name, f"fault setting {f.name} must be finite and >= 0, got {v}")
+            top = MAX_SIZE.get(f.name)
+            if top is not None and v > top:
+                raise FaultSettingError(
+                    f.name, f"fault setting {f.name} must be at most {top:g}, got {v:g}")
         if self.link_total > 1.0:
             raise ValueError("link fault probabilities must add up to at most 1")
 

@@ -54,6 +54,10 @@ class Sequencer:
         return bytes(frame)
 
 
+class SendError(ValueError):
+    """Every datagram to a target was refused by the OS: the target is unusable."""
+
+
 class _Endpoint(asyncio.DatagramProtocol):
     def __init__(self, stats: EmulatorStats, on_datagram):
         self.stats = stats
@@ -62,8 +66,11 @@ class _Endpoint(asyncio.DatagramProtocol):
     def datagram_received(self, data: bytes, addr: tuple) -> None:
         self.on_datagram(data, addr)
 
+    last_error: Exception | None = None
+
     def error_received(self, exc: Exception) -> None:
         # A target without a listener answers with ICMP port unreachable; keep going.
+        self.last_error = exc
         self.stats.send_errors += 1
         log.debug("send error: %s", exc)
 
@@ -122,19 +129,34 @@ class Emulator:
                     self.stats.datagrams_sent += 1
                     self.stats.bytes_sent += len(data_out)
 
-        transport, _ = await loop.create_datagram_endpoint(
+        transport, endpoint = await loop.create_datagram_endpoint(
             lambda: _Endpoint(self.stats, on_datagram), sock=sock)
         link = LinkFaults(cfg.faults, source.rng["link_faults"], self.stats.faults)
         start_wall = time.perf_counter()
         start: float | None = None  # stream time 0 = when the first packet is ready
         sent_since_yield = 0
 
+        delivered = dict.fromkeys(addresses, 0)  # sends the kernel took, per target
+        refused: dict[tuple[str, int], Exception] = {}  # last refusal, per target
+
         def send(datagrams: list[bytes]) -> None:
             for data in datagrams:
                 for addr in addresses:
-                    transport.sendto(data, addr)
+                    errors = self.stats.send_errors
+                    transport.sendto(data, addr)  # a refusal calls error_received at once
+                    if self.stats.send_errors > errors and endpoint.last_error is not None:
+                        refused[addr] = endpoint.last_error
+                    else:
+                        delivered[addr] += 1
                     self.stats.datagrams_sent += 1
                     self.stats.bytes_sent += len(data)
+
+        def check_targets() -> None:
+            """A target that refused every datagram of a whole chunk never will take one
+            (e.g. a broadcast address): stop instead of streaming into nothing."""
+            for (host, port), exc in refused.items():
+                if delivered[(host, port)] == 0:
+                    raise SendError(f"cannot send to udp:{host}:{port}: {exc}")
 
         def produce() -> tuple[int, float, list[Packet]]:
             rec = source.chunk()
@@ -164,6 +186,7 @@ class Emulator:
                     self.stats.count_message(packet.kind)
                     now_s[0] = packet.due_s
                     send(link.apply(sequencer.stamp(packet.data)))
+                check_targets()
                 self.stats.imu_samples += n_samples
                 self.stats.stream_time_s = t_end
             send(link.flush())

@@ -465,8 +465,9 @@ def load_attitude_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         text = path.read_text()
     except OSError as exc:
         raise ValueError(f"cannot read motion file {path}: {exc}") from exc
-    rows = [line for line in text.splitlines() if line.strip() and not line.startswith("#")]
-    reader = csv.DictReader(rows)
+    numbered = [(n, line) for n, line in enumerate(text.splitlines(), start=1)
+                if line.strip() and not line.startswith("#")]
+    reader = csv.DictReader([line for _, line in numbered])
     need = ["time_s", "qw", "qx", "qy", "qz"]
     if reader.fieldnames is None or any(k not in reader.fieldnames for k in need):
         raise ValueError(f"{path}: header must contain {','.join(need)}")
@@ -474,7 +475,12 @@ def load_attitude_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         data = np.array([[float(r[k]) for k in need] for r in reader])
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{path}: non-numeric value ({exc})") from exc
-    if len(data) < 2 or not np.all(np.isfinite(data)):
+    if len(data) and not np.all(np.isfinite(data)):
+        k = int(np.flatnonzero(~np.all(np.isfinite(data), axis=1))[0])
+        line_no = numbered[k + 1][0]  # +1: the header  # one CSV record per line
+        raise ValueError(f"{path}: line {line_no}: not a finite number "
+                         f"({','.join(f'{v:g}' for v in data[k])})")
+    if len(data) < 2:
         raise ValueError(f"{path}: need at least 2 rows of finite numbers")
     times = data[:, 0] - data[0, 0]
     if np.any(np.diff(times) <= 0.0):

@@ -91,9 +91,24 @@ def _refuse_bools(value: object, name: str) -> None:
         raise ValueError(f"{name} must be numbers, not true/false, got {value!r}")
 
 
+def _has_non_number(value: object) -> bool:
+    """Whether a (nested) value holds anything but a real number: numpy would silently
+    read a TOML string ``"0.5"`` as 0.5 (a quoted value is a mistake to report, not to
+    guess at)."""
+    if isinstance(value, np.ndarray):
+        if value.dtype.kind in "iuf":
+            return False
+        return value.dtype != object or any(_has_non_number(v) for v in value.flat)
+    if isinstance(value, list | tuple):
+        return any(_has_non_number(v) for v in value)
+    return not isinstance(value, int | float | np.integer | np.floating)
+
+
 def _vector(value: object, name: str, limit: tuple[float, str, str]) -> np.ndarray:
     """3 finite numbers, none beyond ``limit`` (largest offset, unit, in words)."""
     _refuse_bools(value, name)
+    if _has_non_number(value):
+        raise ValueError(f"{name} must be 3 numbers, got {value!r}")
     try:
         v = np.array(value, dtype=float)
     except (TypeError, ValueError):
@@ -121,6 +136,8 @@ def _matrix(value: object, name: str, scale_range: tuple[float, float]) -> np.nd
     and without a numpy warning.
     """
     _refuse_bools(value, name)
+    if _has_non_number(value):
+        raise ValueError(f"{name} must be a 3x3 array of numbers, got {value!r}")
     try:
         m = np.array(value, dtype=float)
     except (TypeError, ValueError):
@@ -255,9 +272,14 @@ class SensorCalibration:
             raise ValueError(f"{p}: not valid TOML (not UTF-8 text: byte "
                              f"{exc.object[exc.start]:#04x} at offset {exc.start})") from exc
         try:
-            return cls.from_dict(tomllib.loads(text))
+            data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise ValueError(f"{p}: not valid TOML ({exc})") from exc
+        if not set(data) - {"meta"}:  # (an unknown table is said by from_dict)
+            # An empty (or truncated, or wrong) file would apply nothing without a word.
+            raise ValueError(f"{p}: no [gyro], [accel] or [mag] table")
+        try:
+            return cls.from_dict(data)
         except ValueError as exc:
             raise ValueError(f"{p}: {exc}") from exc
 

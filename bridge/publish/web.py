@@ -24,6 +24,8 @@ WebSocket that only sends; no control of any kind), same-origin WebSockets only.
 from __future__ import annotations
 
 import asyncio
+import base64
+import binascii
 import json
 import logging
 import socket
@@ -39,6 +41,7 @@ import tornado.websocket
 from bokeh import __version__ as bokeh_version
 from bokeh.util.paths import bokehjs_path
 from tornado.httpserver import HTTPServer
+from tornado.iostream import IOStream
 from tornado.netutil import bind_sockets
 
 from ..wire.link import BIND_REASONS
@@ -56,6 +59,23 @@ MAX_INCOMING_BYTES = 1024
 #: Kernel send buffer of a viewer's connection: what a browser that stops reading can
 #: hold of the bridge's memory, beside the one frame in flight (no autotuning to MBs).
 VIEWER_SEND_BUFFER = 64 * 1024
+#: Seconds a connection may take to send a request's headers, counted from when it
+#: opens (or from the previous response, for a kept-alive one; Tornado's
+#: ``idle_connection_timeout`` is this header timeout), and to send a body. A browser
+#: sends its headers in one packet at once; 5 s leaves room for a couple of TCP
+#: retransmissions on a lossy field Wi-Fi link (1 s + 2 s), yet a half-sent request
+#: (slowloris: one byte, or a header line every few seconds) holds its socket and
+#: memory no longer. An idle kept-alive connection is closed too: the browser reopens
+#: it without a word. An opened WebSocket is no longer an HTTP request: not affected.
+REQUEST_TIMEOUT_S = 5.0
+#: HTTP connections (pages, scripts, WebSocket handshakes in progress) served at once;
+#: more are closed at once. A browser opens about 6 per page, so this serves all
+#: MAX_VIEWERS browsers loading at the same time, while a flood of sockets cannot take
+#: the bridge's file descriptors (the MAVLink link needs its own). Opened WebSockets do
+#: not count (MAX_VIEWERS bounds them).
+MAX_CONNECTIONS = 128
+#: Largest request body: the view accepts none (GET only), so any body is refused.
+MAX_BODY_BYTES = 64 * 1024
 
 
 class WebViewError(OSError):
@@ -123,12 +143,13 @@ class WebView:
         app = tornado.web.Application([
             (r"/", _PageHandler, {"page": (static / "index.html").read_bytes()}),
             (r"/ws", _ViewSocket, {"view": self}),
-            (r"/view/(.*)", tornado.web.StaticFileHandler, {"path": str(static)}),
-            (r"/bokeh/(.*)", tornado.web.StaticFileHandler,
-             {"path": str(bokehjs_path() / "js")}),
+            (r"/view/(.*)", _StaticHandler, {"path": str(static)}),
+            (r"/bokeh/(.*)", _StaticHandler, {"path": str(bokehjs_path() / "js")}),
         ], websocket_max_message_size=MAX_INCOMING_BYTES, websocket_ping_interval=5.0,
             websocket_ping_timeout=5.0, log_function=_quiet_access_log)
-        self._server = HTTPServer(app)
+        self._server = _BoundedHTTPServer(app, idle_connection_timeout=REQUEST_TIMEOUT_S,
+                                          body_timeout=REQUEST_TIMEOUT_S,
+                                          max_body_size=MAX_BODY_BYTES)
         self._server.add_sockets(sockets)
         log.info("web view at %s (read-only; %d Hz)", self.url, FRAME_HZ)
 
@@ -176,6 +197,36 @@ class WebView:
             viewer.close(1001, "bridge stopping")
 
 
+class _BoundedHTTPServer(HTTPServer):
+    """At most :data:`MAX_CONNECTIONS` HTTP connections at once; more are closed."""
+
+    def handle_stream(self, stream: IOStream, address: tuple) -> None:
+        # Tornado keeps its open HTTP connections in _connections (a WebSocket leaves
+        # it when it takes its stream over).
+        if len(getattr(self, "_connections", ())) >= MAX_CONNECTIONS:
+            stream.close()
+            return
+        super().handle_stream(stream, address)
+
+
+class _StaticHandler(tornado.web.StaticFileHandler):
+    """Tornado's static files, with a path holding a NUL byte refused (400): the file
+    system calls raise ValueError on it, which would be an HTTP 500 and a traceback."""
+
+    def parse_url_path(self, url_path: str) -> str:
+        if "\x00" in url_path:
+            raise tornado.web.HTTPError(400)
+        return super().parse_url_path(url_path)
+
+
+def _valid_websocket_key(key: str) -> bool:
+    """RFC 6455 4.2.1: the key is the base64 of 16 bytes."""
+    try:
+        return len(base64.b64decode(key.strip(), validate=True)) == 16
+    except (binascii.Error, ValueError):
+        return False
+
+
 def _quiet_access_log(handler: tornado.web.RequestHandler) -> None:
     """Page loads at DEBUG: a service log is no access log."""
     log.debug("%d %s %s", handler.get_status(), handler.request.method,
@@ -205,6 +256,15 @@ class _ViewSocket(tornado.websocket.WebSocketHandler):
     def initialize(self, view: WebView) -> None:
         self.view = view
         self._pending = None
+
+    async def get(self, *args: Any, **kwargs: Any) -> None:
+        key = self.request.headers.get("Sec-WebSocket-Key")
+        if key is not None and not _valid_websocket_key(key):
+            # Tornado checks the key is there, not what it is.
+            self.set_status(400)
+            self.finish("Sec-WebSocket-Key must be the base64 of 16 bytes")
+            return
+        await super().get(*args, **kwargs)
 
     def open(self) -> None:
         view = self.view

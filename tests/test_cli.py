@@ -66,6 +66,9 @@ def bad_inputs(tmp: Path, busy: int) -> list[tuple[list[str], str]]:
         (["run", "--component-id", "1"], "is the autopilot's"),  # served nothing, silently
         (["run", "--mqtt", "http://broker"], "MQTT URL"),
         (["run", "--record", str(tmp / "no" / "session.tlog")], "does not exist"),
+        # the status, rewritten every second, would have replaced the recording
+        (["run", "--record", str(tmp / "same"), "--status-file", str(tmp / "same")],
+         "also given to --record"),
         (["demo", "--duration", "0"], "duration must be more than 0"),
         (["demo", "--duration", "1e8"], "at most 3.1536e+07 s"),  # was 64 MB/s, no start
         (["run", "--imu-rate", "1e-300"], "'imu_rate' must be within 1..10000"),  # traceback
@@ -321,3 +324,17 @@ def test_a_status_file_that_is_not_a_regular_file_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "not a regular file" in err and err.count("\n") == 1
     assert fifo.is_fifo()
+
+
+def test_ctrl_c_while_the_commands_import_is_one_line(monkeypatch, capsys):
+    """Ctrl-C in the first fraction of a second (the commands' modules importing) gave
+    a traceback: it is 'interrupted' and exit 130 like any other moment."""
+    import bridge.app.cli as cli
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "build_parser", interrupted)
+    assert cli.main(["run"]) == 130
+    err = capsys.readouterr().err
+    assert err == "attitude-bridge: interrupted\n"

@@ -116,7 +116,11 @@ def describe_error(exc: BaseException) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    try:  # imports every command's module: Ctrl-C can come this early
+        parser = build_parser()
+    except KeyboardInterrupt:
+        print("attitude-bridge: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

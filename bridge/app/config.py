@@ -28,7 +28,7 @@ from imu.rotations import rotation_matrix
 
 from ..vehicle.negotiate import parse_forced
 from ..wire.mav import BRIDGE_COMPONENT_ID, mavlink
-from .config_checks import check_output_file, check_ranges, check_types, parse_source
+from .config_checks import check_outputs, check_ranges, check_types, parse_source
 
 #: Personalities of the built-in emulator (hil.personality.AUTOPILOTS; not imported
 #: here: a bridge on a real vehicle need not load the emulator).
@@ -227,9 +227,8 @@ class BridgeConfig:
             from ..publish.web import parse_web
 
             parse_web(self.web)
-        for option, path in (("--record", self.record), ("--status-file", self.status_file)):
-            if path is not None:
-                check_output_file(path, option)
+        # each writable and neither the other's (the status would overwrite the recording)
+        check_outputs(((self.record, "--record"), (self.status_file, "--status-file")), [])
         if self.status_file is not None:
             from .health import check_status_path
 

@@ -11,8 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_support import one_line_error
+from cli_support import run_cli as cli
 
-from bridge.app.cli import main
 from replay.dataset import ReplayInputError
 from replay.logpaths import expand
 from replay.readers import csv as csv_format
@@ -22,27 +23,6 @@ from replay.tune_tasks import TuneInputs, sweep_share
 
 SMALL_ULOG = "pyulog_sample_log_small.ulg"
 TUNE = ["-e", "mahony", "--jobs", "1", "-q"]
-
-
-def cli(argv: list[str]) -> tuple[int, str, str]:
-    """Run the real entry point in this process; (exit code, stdout, stderr), argparse's
-    own refusals (SystemExit) included."""
-    import contextlib
-    import io
-
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main(argv)
-        except SystemExit as exc:
-            code = int(exc.code)
-    return code, out.getvalue(), err.getvalue()
-
-
-def one_line_error(code: int, err: str, *expected: str) -> None:
-    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
-    for text in expected:
-        assert text in err, err
 
 
 @pytest.fixture

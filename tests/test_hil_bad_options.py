@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import contextlib
 import io
-import warnings
 
 import pytest
+from cli_support import one_line_error, run_cli
 
-from bridge.app.cli import main
 from hil.board import MAX_BOARD_US, BoardClock
 from hil.cli import parse_home
 
@@ -17,23 +16,8 @@ H = ["hil", "--target", "udp:127.0.0.1:14599", "--fast", "--duration", "0.5"]
 
 
 def cli(argv: list[str]) -> tuple[int, str, str]:
-    """The real entry point in this process: (exit code, stdout, stderr)."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), \
-            warnings.catch_warnings():
-        warnings.simplefilter("error")  # a leaked numpy RuntimeWarning fails the test
-        try:
-            code = main(argv)
-        except SystemExit as exc:
-            code = int(exc.code)
-    return code, out.getvalue(), err.getvalue()
-
-
-def one_line_error(code: int, err: str, *expected: str) -> None:
-    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
-    assert "internal error" not in err, err
-    for text in expected:
-        assert text in err, err
+    """A leaked numpy RuntimeWarning fails the test."""
+    return run_cli(argv, warnings_as_errors=True)
 
 
 @pytest.mark.parametrize("args, option", [

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_support import run_cli as cli
 
-from bridge.app.cli import main
 from replay import cluster
 from replay.crossval import check_groups, cross_validate
 from replay.dataset import ReplayInputError
@@ -74,17 +74,6 @@ def one_core(corpus, tmp_path_factory) -> tuple[dict, str, Path]:
                            "--report", str(out / "s.html")])
     assert code == 0
     return json.loads((out / "s.json").read_text()), stdout, out
-
-
-def cli(argv: list[str]) -> tuple[int, str, str]:
-    """Run the real entry point in this process; (exit code, stdout, stderr)."""
-    import contextlib
-    import io
-
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main(argv)
-    return code, out.getvalue(), err.getvalue()
 
 
 def entry(doc: dict, name: str) -> dict:

@@ -60,12 +60,11 @@ class SampleFlow:
         state = self.ingest.sources.get(key)
         if state is not None:
             state.clock.boot_hint = vehicle.boot_hint
-        dropped = state.dropped if state is not None else 0
         samples = self.ingest.handle_all(msg, arrival, key)
-        if not samples:
+        if not samples:  # refused (counted by its source) or held as clock evidence
             state = self.ingest.sources.get(key)
-            if state is not None and state.dropped > dropped:
-                vehicle.negotiation.refused(state.dropped - dropped)
+            if state is not None:
+                vehicle.negotiation.note_dropped(state.dropped)
             return
         vehicle.last_imu = now
         vehicle.request_backoff = STREAM_SILENCE_S

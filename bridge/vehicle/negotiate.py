@@ -202,6 +202,7 @@ class StreamNegotiation:
     _msg_observed: int | None = None
     #: of the primary stream's recent messages, accepted (True) or refused here (False)
     _fates: deque = field(default_factory=lambda: deque(maxlen=_RATE_STEPS))
+    _dropped_seen: int = 0  # the primary source's drop count when last told
 
     # --- plan -----------------------------------------------------------------------
     def start(self, autopilot: int) -> None:
@@ -359,6 +360,15 @@ class StreamNegotiation:
         or duplicated stamps, unusable values): they lower the accepted rate, and a
         warning about it must not send the user to the autopilot's settings."""
         self._fates.extend([False] * min(count, _RATE_STEPS))
+
+    def note_dropped(self, total: int) -> None:
+        """The primary source's drop count now (told only when a message gave no
+        sample, so the hot path does no counting): the new drops are :meth:`refused`.
+        A count lower than the last one is a new source's, counted from zero."""
+        new = total - self._dropped_seen if total >= self._dropped_seen else total
+        self._dropped_seen = total
+        if new > 0:
+            self.refused(new)
 
     @property
     def refused_share(self) -> float:

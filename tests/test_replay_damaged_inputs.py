@@ -223,3 +223,37 @@ def test_tlog_whose_recorder_clock_jumps_keeps_the_records_after_it(data_dir, tm
             f"+11.6 days (first at record {half + 1} of {len(records)}): the "
             f"{len(records) - half} records from there are kept, their arrival times moved "
             f"to follow on from before the jump") in rec.notes
+
+
+def test_a_spike_in_the_last_csv_row_is_dropped_too(data_dir, tmp_path, capsys):
+    """The last row has no next row to be out of line with: a stamp of 1e9 s there was
+    kept, and the replay reported a recording of 1e9 s."""
+    path = tmp_path / "last.csv"
+
+    def spike(t):
+        t = t.copy()
+        t[-1] = 1e9
+        return t
+
+    broad_csv(data_dir, path, spike)
+    rec = load(path)
+    assert rec.n == ROWS - 1 and rec.t[-1] < 100.0
+    assert rec.notes == (f"CSV: 1 row with a time stamp out of line with the rows either side "
+                         f"dropped (first: t = 1e+09 s, the row before's {rec.t[-1]:g} s)",)
+    assert main(["replay", str(path), "-e", "mahony"]) == 0
+    assert "1e+09 s at" not in capsys.readouterr().out
+
+
+def test_a_csv_whose_clock_moves_on_after_a_pause_keeps_its_last_row(data_dir, tmp_path):
+    """A last step as long as the recording before it is not yet out of line: only a
+    step longer than everything before it is."""
+    path = tmp_path / "pause.csv"
+
+    def pause(t):
+        t = t.copy()
+        t[-1] = t[-2] + 0.9 * (t[-2] - t[0])
+        return t
+
+    broad_csv(data_dir, path, pause)
+    rec = load(path)
+    assert rec.n == ROWS and not [n for n in rec.notes if "out of line" in n]

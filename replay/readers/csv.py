@@ -158,6 +158,10 @@ def _drop_time_spikes(table: np.ndarray, column: int) -> tuple[np.ndarray, str]:
     really goes back (a reset) stays behind the row before the jump, so it is no spike and
     the rows after it are dropped and counted as before; a row merely swapped with the
     next one only hides that one row and is left to that count too.
+
+    The last row has no next row to be out of line with; it is a spike when its one step
+    is longer than the whole recording before it (a stamp that alone would more than
+    double the recording, with nothing after it to show a clock that moved on).
     """
     t = table[:, column]
     if t.shape[0] < 3:
@@ -165,12 +169,18 @@ def _drop_time_spikes(table: np.ndarray, column: int) -> tuple[np.ndarray, str]:
     before = np.concatenate(([-np.inf], t[:-2]))  # row k-1 for rows 0..n-2
     after, after2 = t[1:], np.concatenate((t[2:], [np.inf]))
     spike = np.flatnonzero((t[:-1] > after) & (t[:-1] > after2) & (before < after))
+    kept = np.delete(t, spike)  # the last row is never among those: it has no next row
+    if kept.shape[0] >= 3 and kept[-1] - kept[-2] > kept[-2] - kept[0] > 0.0:
+        spike = np.append(spike, t.shape[0] - 1)
     if not spike.size:
         return table, ""
     rows = "row" if spike.size == 1 else "rows"
+    first = spike[0]
+    beside = (f"the next row's {t[first + 1]:g} s" if first + 1 < t.shape[0]
+              else f"the row before's {t[first - 1]:g} s")
     return (np.delete(table, spike, axis=0),
             f"CSV: {spike.size} {rows} with a time stamp out of line with the rows either "
-            f"side dropped (first: t = {t[spike[0]]:g} s, the next row's {after[spike[0]]:g} s)")
+            f"side dropped (first: t = {t[first]:g} s, {beside})")
 
 
 def _dropped_note(line_numbers: list[int], why: str) -> str:

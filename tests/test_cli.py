@@ -220,6 +220,34 @@ def test_e_is_short_for_estimator_on_every_command_that_takes_it():
         assert cfg.estimators == ["eskf:declination_deg=3.5", "mahony"]
 
 
+def test_every_relative_path_in_a_settings_file_is_relative_to_that_file(tmp_path,
+                                                                       monkeypatch):
+    """Only the calibration was: a service started from / with ``record = "s.tlog"``
+    tried to write /s.tlog, and its TLS files were looked for in the wrong folder."""
+    folder = tmp_path / "etc"
+    folder.mkdir()
+    path = folder / "bridge.toml"
+    path.write_text('record = "logs/s.tlog"\nstatus-file = "status.json"\n'
+                    'mqtt-ca = "ca.pem"\nmqtt-cert = "/abs/cert.pem"\n'
+                    'mqtt-key = "~/key.pem"\nsigning-key = "file:key.txt"\n'
+                    'calibration = "cal.toml"\n')
+    monkeypatch.chdir(tmp_path)
+    cfg = config_from_args(parse(["run", "--config", str(path)]), demo=False, environ={})
+    assert (cfg.record, cfg.status_file, cfg.mqtt_ca, cfg.calibration) == (
+        str(folder / "logs" / "s.tlog"), str(folder / "status.json"), str(folder / "ca.pem"),
+        str(folder / "cal.toml"))
+    assert cfg.mqtt_cert == "/abs/cert.pem"
+    assert cfg.mqtt_key == str(Path("~/key.pem").expanduser())
+    assert cfg.signing_key == "file:" + str(folder / "key.txt")
+    path.write_text('signing-key = "env:BRIDGE_KEY"\n')
+    cfg = config_from_args(parse(["run", "--config", str(path)]), demo=False, environ={})
+    assert cfg.signing_key == "env:BRIDGE_KEY"
+    # on the command line a relative path stays relative to the working folder
+    cfg = config_from_args(parse(["run", "--config", str(path), "--record", "here.tlog"]),
+                           demo=False, environ={})
+    assert cfg.record == "here.tlog"
+
+
 def test_settings_file_takes_option_names_and_the_environment_overrides_it(tmp_path):
     path = tmp_path / "bridge.toml"
     path.write_text('connect = "udpin:0.0.0.0:14550"\nestimator = ["mahony", "eskf"]\n'

@@ -14,6 +14,7 @@ import pytest
 from cli_support import one_line_error
 from cli_support import run_cli as cli
 
+from bridge.wire.codec import signing_key_from_text
 from replay.dataset import ReplayInputError
 from replay.logpaths import expand
 from replay.readers import csv as csv_format
@@ -166,3 +167,22 @@ def test_a_cluster_share_brings_back_the_damage_notes(damaged_csv):
                         ({"kp": 1.0},), "sensors")
     assert share["notes"][-1] == f"dropped IMU samples: {load(damaged_csv).cleanup}"
     assert np.isfinite(share["scores"]).all()
+
+
+def test_a_signing_key_a_digit_short_is_refused_not_hashed_as_a_passphrase(tmp_path,
+                                                                            monkeypatch):
+    """63 hex digits were hashed as a passphrase: the bridge signed with a key the
+    autopilot does not have, and every signed frame was refused there in silence."""
+    key = "0123456789abcdef" * 4
+    monkeypatch.setenv("BRIDGE_TEST_KEY", key[:-1])
+    code, _, err = cli(["run", "--signing-key", "env:BRIDGE_TEST_KEY", "--duration", "1"])
+    one_line_error(code, err, "--signing-key env:BRIDGE_TEST_KEY", "63 hex digits",
+                   "a key has 64")
+    (tmp_path / "key.txt").write_text(key + "0\n")
+    code, _, err = cli(["run", "--signing-key", f"file:{tmp_path / 'key.txt'}",
+                            "--duration", "1"])
+    one_line_error(code, err, "65 hex digits")
+    # the whole key, and a passphrase, are taken as before
+    assert signing_key_from_text(key) == bytes.fromhex(key)
+    assert len(signing_key_from_text("correct horse battery staple")) == 32
+    assert len(signing_key_from_text("cafe")) == 32  # short: a passphrase

@@ -95,6 +95,27 @@ def default_estimator() -> str:
 AUTOPILOT_COMPONENT_ID = 1
 
 
+
+#: Settings that name a file: relative ones in a settings file are relative to it.
+PATH_SETTINGS = ("calibration", "record", "status_file", "mqtt_ca", "mqtt_cert", "mqtt_key",
+                 "signing_key")
+
+
+def _beside(settings: Path, value: str) -> str:
+    """``value`` (a path, or a signing key's ``file:PATH``) relative to the settings
+    file's folder; absolute paths, ``env:NAME`` and empty values as given."""
+    prefix = ""
+    if value.startswith("env:") or not value.strip():
+        return value
+    if value.startswith("file:"):
+        prefix, value = "file:", value[5:]
+    if value.startswith("~"):
+        return prefix + str(Path(value).expanduser())
+    if not value.strip() or Path(value).is_absolute():
+        return prefix + value
+    return prefix + str(settings.parent / value)
+
+
 @dataclass
 class BridgeConfig:
     """Everything the bridge service needs to run."""
@@ -249,9 +270,10 @@ class BridgeConfig:
 
     @classmethod
     def fields_from_toml(cls, path: str | Path) -> dict[str, Any]:
-        """{field: value} of a TOML settings file; a relative ``calibration`` path is
-        taken relative to the settings file (they usually live side by side). Every
-        error names the file."""
+        """{field: value} of a TOML settings file; a relative path in it (calibration,
+        recording, status, TLS and signing-key files) is taken relative to the settings
+        file, whatever the folder the bridge is started from (a service's is often /).
+        Every error names the file."""
         path = Path(path)
         try:
             data = tomllib.loads(path.read_text(encoding="utf-8"))
@@ -266,9 +288,10 @@ class BridgeConfig:
             fields = cls.fields_from(data)
         except ValueError as exc:
             raise ValueError(f"settings file {path}: {exc}") from None
-        cal = fields.get("calibration")
-        if isinstance(cal, str) and not Path(cal).is_absolute():
-            fields["calibration"] = str(path.parent / cal)
+        for name in PATH_SETTINGS:
+            value = fields.get(name)
+            if isinstance(value, str):
+                fields[name] = _beside(path, value)
         return fields
 
     @classmethod

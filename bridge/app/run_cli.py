@@ -74,8 +74,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                         "(default 50)")
     p.add_argument("--component-id", type=int, metavar="ID", help="own component id (191)")
     p.add_argument("--signing-key", metavar="env:VAR|file:PATH",
-                   help="MAVLink 2 signing key: 64 hex digits or a passphrase; unsigned "
-                        "input is then rejected and counted")
+                   help="MAVLink 2 signing key: 64 hex digits or a passphrase (not all "
+                        "hex digits); unsigned input is then rejected and counted")
     p.add_argument("--allow-unsigned", action="store_true", default=None,
                    help="with --signing-key: accept unsigned input too")
     g = p.add_argument_group("who is served, and bounds under attack")

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import string
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,16 +42,26 @@ class SigningConfig:
             raise ValueError(f"a MAVLink signing key has 32 bytes, got {len(self.key)}")
 
 
+#: Hex digits in a MAVLink signing key written out (32 bytes).
+KEY_HEX_DIGITS = 64
+
+
 def signing_key_from_text(text: str) -> bytes:
-    """64 hex digits are the key itself; anything else is a passphrase, hashed (SHA-256)."""
+    """64 hex digits are the key itself; anything else is a passphrase, hashed (SHA-256).
+
+    Except a long run of hex digits that is not 64 (from 32): that is a key copied with
+    a digit missing or added, and hashing it as a passphrase would sign with a key the
+    autopilot does not have, each frame refused there without a word here."""
     text = text.strip()
-    try:
-        if len(text) == 64:
-            return bytes.fromhex(text)
-    except ValueError:
-        pass
     if not text:
         raise ValueError("empty MAVLink signing key")
+    hex_only = all(c in string.hexdigits for c in text)
+    if hex_only and len(text) == KEY_HEX_DIGITS:
+        return bytes.fromhex(text)
+    if hex_only and len(text) >= KEY_HEX_DIGITS // 2:
+        raise ValueError(f"the signing key has {len(text)} hex digits; a key has "
+                         f"{KEY_HEX_DIGITS} (a passphrase is taken when it is not all hex "
+                         f"digits)")
     return hashlib.sha256(text.encode()).digest()
 
 

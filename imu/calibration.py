@@ -250,6 +250,10 @@ class SensorCalibration:
             if not isinstance(section, dict):
                 raise ValueError(f"[{table}] must be a table")
             allowed = {off_key} | ({mat_key} if mat_key else set())
+            if table in data and not section:
+                # (a file cut after its header: the sensor would go uncorrected unsaid)
+                raise ValueError(f"[{table}] is empty; give {' and/or '.join(sorted(allowed))}"
+                                 f", or leave the table out")
             extra = sorted(set(section) - allowed)
             if extra:
                 raise ValueError(f"unknown key(s) {extra} in [{table}]; valid: "

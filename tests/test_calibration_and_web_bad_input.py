@@ -54,6 +54,20 @@ def test_a_file_with_no_sensor_table_is_refused(tmp_path, text):
     assert str(info.value) == f"{path}: no [gyro], [accel] or [mag] table"
 
 
+@pytest.mark.parametrize("text, table, keys", [
+    ("[gyro]\n", "gyro", "matrix and/or offset"),
+    ("[accel]\noffset = [0.1, 0, 0]\n[mag]\n", "mag", "matrix and/or offset"),
+])
+def test_an_empty_sensor_table_is_refused(tmp_path, text, table, keys):
+    """A file cut after a table's header applied nothing for that sensor, unsaid."""
+    path = tmp_path / "cut.toml"
+    path.write_text(text)
+    with pytest.raises(ValueError) as info:
+        SensorCalibration.load(path)
+    assert str(info.value) == (f"{path}: [{table}] is empty; give {keys}, or leave the "
+                               f"table out")
+
+
 def test_run_refuses_them_in_one_line_with_exit_2(tmp_path):
     strings = tmp_path / "s.toml"
     strings.write_text('[gyro]\noffset = ["0.5", 0, 0]\n'

@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -366,3 +368,35 @@ def test_ctrl_c_while_the_commands_import_is_one_line(monkeypatch, capsys):
     assert cli.main(["run"]) == 130
     err = capsys.readouterr().err
     assert err == "attitude-bridge: interrupted\n"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_stops_a_cold_start_while_the_estimators_compile(tmp_path, sig):
+    """The compilation runs inside the blocked event loop, whose handlers only wake the
+    loop: Ctrl-C or a service manager's SIGTERM on a cold start (an empty numba cache)
+    waited for the compiler, about a minute on this machine."""
+    from bridge_support import free_udp_port
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cold-cache")}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bridge.app.cli", "run", "--connect",
+         f"udpin:127.0.0.1:{free_udp_port()}", "-e", "eskf"],
+        stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        line = ""
+        while "preparing estimators" not in line:
+            line += proc.stderr.read(1)
+            assert line or proc.poll() is None, "the bridge ended before compiling"
+        time.sleep(1.0)  # well inside the compilation
+        sent = time.monotonic()
+        proc.send_signal(sig)
+        code = proc.wait(timeout=30)
+        waited = time.monotonic() - sent
+        err = proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert code == 130 and "attitude-bridge run: interrupted" in err, err
+    assert "Traceback" not in err
+    assert waited < 10.0, f"{waited:.1f} s after the signal"

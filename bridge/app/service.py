@@ -60,7 +60,7 @@ from .requests import StreamRequester
 from .routing import MessageRouter
 from .samples import SampleFlow
 from .status import StatusReporter
-from .warmup import Progress, warm_up_all
+from .warmup import Progress, interruptible, warm_up_all
 from .watch import StreamWatch
 
 log = logging.getLogger(__name__)
@@ -209,7 +209,8 @@ class BridgeService:
                 await out.start()
             if self.web is not None:
                 self.web.start()  # before the warm-up: the page is there at once
-            warm_up_all(self.pipeline.specs, self.on_progress)
+            with interruptible():  # the loop is blocked: its signal handlers wait
+                warm_up_all(self.pipeline.specs, self.on_progress)
             self.reporter.restart_clock()
             if self.mqtt is not None:
                 mqtt_task = asyncio.create_task(self.mqtt.run(), name="mqtt")

@@ -11,9 +11,12 @@ cached) and reports the progress per estimator, so a cold start is never silent.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
 import sys
+import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -71,6 +74,30 @@ def warm_up_all(specs: Iterable[EstimatorSpec], progress: Progress | None = None
         if progress is not None:
             progress(name, taken[name])
     return taken
+
+
+@contextlib.contextmanager
+def interruptible() -> Iterator[None]:
+    """SIGINT and SIGTERM raise KeyboardInterrupt inside the block.
+
+    The bridge compiles its estimators inside its event loop, which is blocked until the
+    compiler is done, and the loop's own signal handlers only wake the loop: Ctrl-C on a
+    cold start waited for the compilation (a minute on a small machine). Python-level
+    handlers run between the compiler's bytecodes, so one that raises stops it at once.
+    Outside the main thread (no signals there) the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
 
 
 class LineProgress:

@@ -208,6 +208,10 @@ class Recording:
     score_mask: np.ndarray | None = None
     cleanup: TimeCleanup = field(default_factory=TimeCleanup)
     notes: tuple[str, ...] = ()  # human-readable remarks from the reader (dropped, trimmed)
+    #: those of the notes that say what the log lost (samples dropped, a cut or damaged
+    #: file): a score on it is not one on a whole log. Given here, a note is added to
+    #: ``notes`` too if the reader left it out.
+    damage: tuple[str, ...] = ()
     warnings: tuple[str, ...] = ()  # things that make numbers doubtful (wrong board?)
     board: str | None = None  # RAW_IMU board profile used, None when not applicable
     params: Mapping[str, float] = field(default_factory=dict)  # the vehicle's parameters
@@ -245,7 +249,10 @@ class Recording:
             raise ValueError(f"velocity must be ({n}, 3) with age ({n},)")
         self._check_rate()
         self._drop_useless_magnetometer()
-        self._add_notes(self._damage_notes())
+        lost = tuple(n for n in self._damage_notes() if n not in self.damage)
+        if lost:
+            object.__setattr__(self, "damage", (*self.damage, *lost))
+        self._add_notes(list(self.damage))
 
     def _check_rate(self) -> None:
         """Refuse a rate no IMU has (:data:`MAX_RATE_HZ`): every dt would be wrong."""

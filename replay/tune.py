@@ -217,17 +217,10 @@ class Sweep:
         Path(path).write_text(json.dumps(doc, indent=1), encoding="utf-8")
 
 
-#: Words by which a reader's note reports damage (samples lost, skipped or cut off)
-#: rather than where the data came from ("IMU HIGHRES_IMU from system 1", "magnetometer
-#: from ..."): the readers' notes carry no kind of their own.
-DAMAGE_WORDS = ("dropped", "damaged", "ends inside", "ends mid-record", "unreadable",
-                "restarted")
-
-
 def damage_notes(rec: Recording) -> tuple[str, ...]:
     """The reader's notes on what the log lost, in the single-file replay's words: a
     score on a damaged log should not read as one on a whole log."""
-    notes = [n for n in rec.notes if any(word in n for word in DAMAGE_WORDS)]
+    notes = list(rec.damage)
     if rec.cleanup.dropped:
         notes.append(f"dropped IMU samples: {rec.cleanup}")
     return tuple(notes)

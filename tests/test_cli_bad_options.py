@@ -20,6 +20,7 @@ from replay.logpaths import expand
 from replay.readers import csv as csv_format
 from replay.readers import load
 from replay.synthetic import SyntheticConfig, generate
+from replay.tune import damage_notes
 from replay.tune_tasks import TuneInputs, sweep_share
 
 SMALL_ULOG = "pyulog_sample_log_small.ulg"
@@ -169,6 +170,23 @@ def test_a_cluster_share_brings_back_the_damage_notes(damaged_csv):
     assert np.isfinite(share["scores"]).all()
 
 
+def test_every_damage_a_reader_counts_is_a_damage_note_in_tune(tmp_path):
+    """tune picked the damage notes by their wording and missed the unusable
+    magnetometer and accelerometer readings ("unusable", "not finite")."""
+    t = np.arange(400) / 200.0
+    rows = np.column_stack([t, np.zeros((400, 3)), np.tile([0.0, 0.0, -9.81], (400, 1)),
+                            np.tile([0.2, 0.0, 0.4], (400, 1))])
+    rows[10:20, 7:10] = np.nan  # magnetometer
+    rows[30, 4] = np.inf  # accelerometer
+    path = tmp_path / "sensors.csv"
+    np.savetxt(path, rows, delimiter=",", header="t,gx,gy,gz,ax,ay,az,mx,my,mz",
+               comments="")
+    notes = damage_notes(load(path))
+    assert notes == ("magnetometer: 10 of 400 readings unusable (NaN, infinite or zero)",
+                     "accelerometer: 1 of 400 readings not finite (the estimators use the "
+                     "gyro alone there)")
+
+
 def test_a_signing_key_a_digit_short_is_refused_not_hashed_as_a_passphrase(tmp_path,
                                                                             monkeypatch):
     """63 hex digits were hashed as a passphrase: the bridge signed with a key the
@@ -180,7 +198,7 @@ def test_a_signing_key_a_digit_short_is_refused_not_hashed_as_a_passphrase(tmp_p
                    "a key has 64")
     (tmp_path / "key.txt").write_text(key + "0\n")
     code, _, err = cli(["run", "--signing-key", f"file:{tmp_path / 'key.txt'}",
-                            "--duration", "1"])
+                        "--duration", "1"])
     one_line_error(code, err, "65 hex digits")
     # the whole key, and a passphrase, are taken as before
     assert signing_key_from_text(key) == bytes.fromhex(key)

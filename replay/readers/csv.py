@@ -82,7 +82,7 @@ def read(path: Path, reference: str = "auto") -> Recording:
     warning = magnitude_warning(acc, "the CSV's ax,ay,az")
     return Recording(path=path, format="csv", t=t, gyr=gyr, acc=acc, mag=mag, world=world,
                      body="FRD", source="csv", reference=ref, score_mask=score,
-                     cleanup=cleanup, notes=notes,
+                     cleanup=cleanup, notes=notes, damage=notes,  # (each says a loss)
                      warnings=(warning,) if warning else (), references=references)
 
 

@@ -78,11 +78,11 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
         ids = Counter(getattr(m, "id", 0) for m in rows)
         rows = [m for m in rows if getattr(m, "id", 0) == min(ids)]
     notes = [f"IMU {imu_type} from system {src[0]} component {src[1]}"]
-    if damage:
-        notes.append(damage)
+    lost = [damage] if damage else []
     if unreadable:
-        notes.append(f"skipped {unreadable} unreadable stretch(es) of the log (bad CRC, "
-                     f"cut frames or bytes between records)")
+        lost.append(f"skipped {unreadable} unreadable stretch(es) of the log (bad CRC, "
+                    f"cut frames or bytes between records)")
+    notes += lost
     if walk.jumps:
         notes.append(walk.jump_note())
     warnings: list[str] = []
@@ -103,8 +103,9 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
     if imu_type != "RAW_IMU" and (w := magnitude_warning(acc, imu_type)) is not None:
         warnings.append(w)
     keep, window, note = _longest_session(t, np.array([m._timestamp for m in rows]))
-    if note:
+    if note:  # (the other sessions are left out)
         notes.append(note)
+        lost.append(note)
     clock = BoardClock(np.array([m._order for m in rows])[keep], t[keep])
     t, gyr, acc, mag = t[keep], gyr[keep], acc[keep], mag[keep]
     t, (gyr, acc, mag), cleanup = clean_stream(t, gyr, acc, mag)
@@ -128,6 +129,7 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
     return Recording(path=path, format="tlog", t=t, gyr=gyr, acc=acc,
                      mag=mag if np.isfinite(mag).any() else None, world="NED", body="FRD",
                      source=imu_type, reference=ref, cleanup=cleanup, notes=tuple(notes),
+                     damage=tuple(lost),
                      warnings=tuple(warnings), board=profile_name,
                      params=_params(messages, src), position=_position(in_session, src),
                      when=when, when_source=when_source, velocity=velocity,

@@ -94,7 +94,7 @@ def read(path: Path, reference: str = "auto") -> Recording:
                      "eskf decides from the data when the vehicle flies")
     return Recording(path=path, format="ulog", t=t, gyr=gyr, acc=acc, mag=mag, world="NED",
                      body="FRD", source="sensor_combined", reference=ref,
-                     cleanup=cleanup, notes=tuple(notes),
+                     cleanup=cleanup, notes=tuple(notes), damage=(damage,) if damage else (),
                      warnings=(warning,) if warning else (),
                      params=dict(ulog.initial_parameters), position=_position(topics),
                      when=when, when_source=when_source,

@@ -73,7 +73,9 @@ the velocity information), the bias random walk and a velocity random walk.
   standing on the ground. At the start — a vehicle is powered up at rest, as the
   flight-state detector assumes too — the wait is waived while the body has been steady
   since its first sample: the mean specific force levels the estimate from the first
-  update, as an inertial system levels before it navigates. Started from one sample,
+  update, as an inertial system levels before it navigates, aided or not (nothing is
+  powered up in a sustained acceleration, and an autopilot's velocity is then its own
+  filter settling). Started from one sample,
   the tilt was otherwise left to the bounded-velocity prior for half a second, and the
   heading, averaged from readings turned by that tilt, kept its trace for seconds. The
   bias still waits for ``rest_time``: its low-pass must settle first.
@@ -965,7 +967,8 @@ def _rest_update(state: np.ndarray, params: np.ndarray, T: float, aided: bool,
     measured velocity — a steady specific force is also what a sustained acceleration
     gives — unless the drag model runs: a flying multirotor's specific force changes
     with its speed, so steady means not accelerating). Not a zero-velocity update: that
-    cruise is not standing still.
+    cruise is not standing still. ``aided`` is False while the body has been still since
+    the estimator started: powered up at rest, it is not accelerating.
 
     ``still`` (not flying): the low-passed gyro is also the bias. A flying vehicle is
     never held still: a steady gyro in a hover is a slow yaw or the position hold's
@@ -1054,12 +1057,12 @@ def _kalman_step(state: np.ndarray, params: np.ndarray, T: float) -> None:
     now = state[_core.RUN_T]
     aided = now - state[_AID_T] <= params[_I.aid_timeout]
     # (steady since the first sample: at rest without the wait, see the module doc)
-    at_rest = state[_REST_T] >= params[_I.rest_time] or (
-        state[_STILL_FROM_START] > 0.0 and state[_REST_T] > 0.0)
+    powered_up_still = state[_STILL_FROM_START] > 0.0 and state[_REST_T] > 0.0
+    at_rest = state[_REST_T] >= params[_I.rest_time] or powered_up_still
     drag = _drag_model_on(state, params, T, r)
     if at_rest:
         flying = drag or state[_core.FLIGHT] == _core.FLIGHT_AIRBORNE
-        _rest_update(state, params, T, aided and not drag,
+        _rest_update(state, params, T, aided and not drag and not powered_up_still,
                      not flying and state[_REST_T] >= params[_I.rest_time])
         r = _rotation(state)
     else:

@@ -385,8 +385,9 @@ def test_a_signal_stops_a_cold_start_while_the_estimators_compile(tmp_path, sig)
     try:
         line = ""
         while "preparing estimators" not in line:
-            line += proc.stderr.read(1)
-            assert line or proc.poll() is None, "the bridge ended before compiling"
+            char = proc.stderr.read(1)
+            assert char, f"the bridge ended before compiling: {line}"
+            line += char
         time.sleep(1.0)  # well inside the compilation
         sent = time.monotonic()
         proc.send_signal(sig)

@@ -95,7 +95,6 @@ def default_estimator() -> str:
 AUTOPILOT_COMPONENT_ID = 1
 
 
-
 #: Settings that name a file: relative ones in a settings file are relative to it.
 PATH_SETTINGS = ("calibration", "record", "status_file", "mqtt_ca", "mqtt_cert", "mqtt_key",
                  "signing_key")

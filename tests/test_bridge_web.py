@@ -10,19 +10,16 @@ frames) and say clearly when its port is taken.
 
 from __future__ import annotations
 
-import json
-import os
 import shutil
-import signal
 import socket
 import subprocess
 import sys
 import time
-from pathlib import Path
 from urllib.error import HTTPError
 from urllib.request import Request, urlopen
 
 import pytest
+from web_bridge import WebBridge
 
 from bridge.publish.web import FRAME_HZ, MAX_VIEWERS, parse_web
 
@@ -36,55 +33,16 @@ CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-
                  "--disable-sync"]
 
 
-class Bridge:
-    """``attitude-bridge run --web 127.0.0.1:0`` with the built-in emulator."""
-
-    def __init__(self, folder: Path, *extra: str) -> None:
-        self.status_path = folder / "status.json"
-        self.log_path = folder / "log"
-        cmd = [sys.executable, "-m", "bridge.app.cli", "run", "--web", "127.0.0.1:0",
-               "--status-file", str(self.status_path), "-e", "eskf", "-e", "mahony", *extra]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL,
-                                     stderr=self.log_path.open("w"),
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
-
-    def status(self) -> dict:
-        try:
-            return json.loads(self.status_path.read_text())
-        except (FileNotFoundError, json.JSONDecodeError):
-            return {}
-
-    def wait_for(self, pred, timeout: float, what: str) -> dict:
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            st = self.status()
-            if st and pred(st):
-                return st
-            if self.proc.poll() is not None:
-                break
-            time.sleep(0.1)
-        raise AssertionError(f"no {what} within {timeout} s; log:\n"
-                             f"{self.log_path.read_text()[-2000:]}")
-
-    @property
-    def web(self) -> dict:
-        return self.status()["connection"]["web"]
-
-    def stop(self) -> int:
-        self.proc.send_signal(signal.SIGINT)
-        return self.proc.wait(timeout=20)
-
-
 @pytest.fixture(scope="module")
 def bridge(tmp_path_factory):
-    b = Bridge(tmp_path_factory.mktemp("web"))
+    b = WebBridge(tmp_path_factory.mktemp("web"), "-e", "eskf", "-e", "mahony")
     try:
         b.wait_for(lambda st: st["vehicles"].get("1", {}).get("compare", {}).get("truth"),
                    60, "comparison with the emulator's truth")
         yield b
     finally:
         code = b.stop()
-        assert code == 0, b.log_path.read_text()[-2000:]
+        assert code == 0, b.log()
 
 
 @pytest.fixture(scope="module")

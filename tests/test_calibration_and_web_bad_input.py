@@ -8,17 +8,14 @@ with a traceback in the log), and one that is never finished is closed after
 
 from __future__ import annotations
 
-import json
-import os
 import select
-import signal
 import socket
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
+from web_bridge import WebBridge
 
 from bridge.publish.web import MAX_CONNECTIONS, REQUEST_TIMEOUT_S
 from imu.calibration import SensorCalibration
@@ -87,46 +84,10 @@ def test_run_refuses_them_in_one_line_with_exit_2(tmp_path):
 # --- the web view -----------------------------------------------------------------------
 
 
-class Bridge:
-    """``attitude-bridge run --web 127.0.0.1:0`` with the built-in emulator."""
-
-    def __init__(self, folder: Path) -> None:
-        self.status_path = folder / "status.json"
-        self.log_path = folder / "log"
-        cmd = [sys.executable, "-m", "bridge.app.cli", "run", "--web", "127.0.0.1:0",
-               "--status-file", str(self.status_path), "-e", "mahony"]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL,
-                                     stderr=self.log_path.open("w"),
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1",
-                                          "ATTITUDE_BRIDGE_DEBUG": "1"})
-        end = time.monotonic() + 60
-        while time.monotonic() < end:
-            try:
-                url = json.loads(self.status_path.read_text())["connection"]["web"]["url"]
-                break
-            except (FileNotFoundError, json.JSONDecodeError, KeyError, TypeError):
-                assert self.proc.poll() is None, self.log()
-                time.sleep(0.1)
-        else:
-            raise AssertionError(f"no web view within 60 s:\n{self.log()}")
-        host, port = url.removeprefix("http://").rstrip("/").split(":")
-        self.host, self.port = host, int(port)
-
-    def log(self) -> str:
-        return self.log_path.read_text()[-3000:]
-
-    def connect(self) -> socket.socket:
-        sock = socket.create_connection((self.host, self.port), timeout=5)
-        return sock
-
-    def stop(self) -> int:
-        self.proc.send_signal(signal.SIGINT)
-        return self.proc.wait(timeout=20)
-
-
 @pytest.fixture(scope="module")
 def bridge(tmp_path_factory):
-    b = Bridge(tmp_path_factory.mktemp("web_bad_input"))
+    b = WebBridge(tmp_path_factory.mktemp("web_bad_input"), "-e", "mahony",
+                  env={"ATTITUDE_BRIDGE_DEBUG": "1"})
     try:
         yield b
     finally:
@@ -144,7 +105,7 @@ def _status_line(sock: socket.socket) -> int:
     return int(head.split()[1])
 
 
-def _request(bridge: Bridge, text: str) -> int:
+def _request(bridge: WebBridge, text: str) -> int:
     with bridge.connect() as sock:
         sock.sendall(text.encode())
         return _status_line(sock)
@@ -165,7 +126,7 @@ def _closed_within(sock: socket.socket, seconds: float) -> float | None:
         return time.monotonic() - t0
 
 
-def _upgrade(bridge: Bridge, key: str) -> str:
+def _upgrade(bridge: WebBridge, key: str) -> str:
     origin = f"http://{bridge.host}:{bridge.port}"
     return (f"GET /ws HTTP/1.1\r\nHost: {bridge.host}:{bridge.port}\r\n"
             "Upgrade: websocket\r\nConnection: Upgrade\r\n"

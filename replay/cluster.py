@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import importlib.util
 import logging
+from collections import deque
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from typing import Any
@@ -135,34 +136,108 @@ def connect(address: str, timeout: float | None = None):
     return client
 
 
+#: A batch holds 1/(BATCH_SHARE × workers) of the work not yet sent.
+BATCH_SHARE = 3
+
+
+class GuidedBatches:
+    """The tasks in ``order`` cut into batches as they are sent, each about
+    1/(BATCH_SHARE·workers) of the weight not yet sent, and at least one task (guided
+    self-scheduling).
+
+    Why batches: every Dask task costs the worker, the scheduler and the client several
+    milliseconds of CPU, and a short log's replay takes a few tens of them, so one task
+    per log spends a fair share of a small cluster's cores on bookkeeping. Why shrinking
+    ones: the first batches are large (few tasks to schedule), the last hold one task
+    each, so the workers run out of work together instead of one waiting for another's
+    large last batch. The number of tasks grows with the logarithm of their count.
+    """
+
+    def __init__(self, order: Sequence[int], weights: Sequence[float], workers: int):
+        self._left = deque(order)
+        self._weights = weights
+        self._share = max(1, workers) * BATCH_SHARE
+        self._weight_left = float(sum(weights[i] for i in order))
+
+    def __bool__(self) -> bool:
+        return bool(self._left)
+
+    def next(self) -> list[int]:
+        target = self._weight_left / self._share
+        batch: list[int] = []
+        taken = 0.0
+        while self._left and (not batch or taken < target):
+            batch.append(self._left.popleft())
+            taken += self._weights[batch[-1]]
+        self._weight_left -= taken
+        return batch
+
+
+def run_batch(fn: Callable[..., Any], batch: Sequence[Task]) -> list[Any]:
+    """One Dask task: ``fn`` over several of the caller's tasks, one after the other (a
+    worker's memory holds one log at a time, and only the small results pile up)."""
+    return [fn(*task) for task in batch]
+
+
+def _threads(client) -> int:
+    """Threads the cluster's workers offer now (the batches follow the cluster as it is
+    when they are cut: a worker that joins later shares the rest)."""
+    info = client.scheduler_info().get("workers", {})
+    return max(1, sum(int(w.get("nthreads", 1)) for w in info.values()))
+
+
 def run_on_cluster(fn: Callable[..., Any], tasks: Sequence[Task], address: str,
-                   on_crash: OnCrash, notify: OnDone, order: Sequence[int]) -> Outcome:
+                   on_crash: OnCrash, notify: OnDone, order: Sequence[int],
+                   weights: Sequence[float] | None = None) -> Outcome:
     """Every task on the cluster; results in task order (see ``replay.parallel.run``).
 
-    A task that fails on the cluster (its worker died, the worker lacks attitude-bridge)
-    gets ``on_crash`` with Dask's reason; the others go on.
+    Tasks go in batches (``GuidedBatches``, cut by ``weights``: e.g. each log's size;
+    equal without), one batch per worker thread at a time: a batch queued behind a
+    worker's running one would wait there while another worker idles. A batch that
+    fails on the cluster (its worker died, the worker lacks attitude-bridge, a task
+    raised) is sent again one task at a time, so that only the task that fails gets
+    ``on_crash`` with Dask's reason; the others go on.
     """
     from distributed import as_completed
 
     client = connect(address)
     out = Outcome([None] * len(tasks))
-    futures = []
+    sent: dict[str, tuple[Any, list[int]]] = {}
+    pending = as_completed(loop=client.loop)
+
+    def send(batch: list[int]) -> None:
+        future = client.submit(run_batch, fn, [tasks[i] for i in batch], pure=False)
+        sent[future.key] = (future, batch)
+        pending.add(future)
+
     try:
-        # submitted in ``order``: Dask runs earlier submissions first
-        futures = [client.submit(fn, *tasks[i], pure=False) for i in order]
-        index = {f.key: i for f, i in zip(futures, order, strict=True)}
-        for fut in as_completed(futures, loop=client.loop):
-            i = index[fut.key]
+        threads = _threads(client)
+        batches = GuidedBatches(order, [1.0] * len(tasks) if weights is None else weights,
+                                threads)
+        for _ in range(threads):
+            if batches:
+                send(batches.next())
+        for future in pending:
+            _, batch = sent.pop(future.key)
             try:
-                out.results[i] = fut.result()
+                results = future.result()
             except Exception as exc:
+                if len(batch) > 1:  # find the one that fails: each again, alone
+                    for i in batch:
+                        send([i])
+                    continue
                 why = " ".join(f"{type(exc).__name__}: {exc}".split())
-                out.results[i] = on_crash(tasks[i], f"on the Dask cluster: {why}")
-            fut.release()  # the worker may forget it now
-            notify(i, out.results[i])
+                results = [on_crash(tasks[batch[0]], f"on the Dask cluster: {why}")]
+            finally:
+                future.release()  # the worker may forget it now
+            if batches:
+                send(batches.next())
+            for i, result in zip(batch, results, strict=True):
+                out.results[i] = result
+                notify(i, result)
     except KeyboardInterrupt:
         out.interrupted = True
-        client.cancel(futures)
+        client.cancel([future for future, _ in sent.values()])
     finally:
         with _quiet_dask():
             client.close()

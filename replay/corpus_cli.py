@@ -90,7 +90,8 @@ def replay_corpus(args: argparse.Namespace) -> int:
     except (ReplayInputError, ValueError) as exc:
         return _fail(exc)
     tasks = [(str(p), absolute(p), options) for p in logs]
-    largest_first = sorted(range(len(logs)), key=lambda i: (-_size(logs[i]), i))
+    sizes = [_size(p) for p in logs]
+    largest_first = sorted(range(len(logs)), key=lambda i: (-sizes[i], i))
     bar = None if args.quiet else Progress(len(tasks), count_failed=True)
     began = time.perf_counter()
 
@@ -102,7 +103,7 @@ def replay_corpus(args: argparse.Namespace) -> int:
         outcome = run(replay_log, tasks, on_crash=lambda task, why: crashed(task[0], why),
                       jobs=args.jobs, scheduler=args.scheduler, on_done=done,
                       warm=lambda: warm(options.specs, options.smooth),
-                      order=largest_first)
+                      order=largest_first, weights=sizes)
     except (ReplayInputError, ValueError) as exc:  # the cluster: no Dask, no scheduler
         return _fail(exc)
     seconds = time.perf_counter() - began

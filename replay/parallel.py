@@ -71,7 +71,8 @@ def workers_for(jobs: int | None, tasks: int) -> int:
 def run(fn: Callable[..., Any], tasks: Sequence[Task], *, on_crash: OnCrash,
         jobs: int | None = None, scheduler: str | None = None,
         on_done: OnDone | None = None, warm: Callable[[], None] | None = None,
-        order: Sequence[int] | None = None) -> Outcome:
+        order: Sequence[int] | None = None,
+        weights: Sequence[float] | None = None) -> Outcome:
     """``fn(*task)`` for every task; ``on_done(index, result)`` as each one finishes.
 
     ``scheduler``: a Dask scheduler's address (``replay.cluster``); else ``jobs``
@@ -79,7 +80,9 @@ def run(fn: Callable[..., Any], tasks: Sequence[Task], *, on_crash: OnCrash,
     pool forks (load compiled kernels once, shared by every worker). ``order``: the
     order to start the tasks in (indices; default as given): the longest first keeps a
     long task from starting last while the other workers have nothing left to do.
-    Results stay in task order. Ctrl-C stops the run: the result then has
+    ``weights``: each task's expected work (e.g. a log's size), by which a cluster's
+    batches are cut (``replay.cluster``); a local pool takes one task at a time and
+    needs none. Results stay in task order. Ctrl-C stops the run: the result then has
     ``interrupted`` set and the finished tasks' results.
     """
     notify = on_done or (lambda i, r: None)
@@ -89,7 +92,7 @@ def run(fn: Callable[..., Any], tasks: Sequence[Task], *, on_crash: OnCrash,
     if scheduler is not None:
         from .cluster import run_on_cluster
 
-        return run_on_cluster(fn, tasks, scheduler, on_crash, notify, order)
+        return run_on_cluster(fn, tasks, scheduler, on_crash, notify, order, weights)
     out = Outcome([None] * len(tasks))
     try:
         if workers_for(jobs, len(tasks)) == 1:

@@ -458,6 +458,42 @@ def test_dask_scheduler_gives_the_one_core_summary(corpus, one_core, dask_cluste
     assert "corrupt.tlog" in stdout
 
 
+def test_cluster_batches_shrink_to_single_tasks_and_cover_every_task_once():
+    """Guided batches: every task once, in the order given; the first batch a sixth of
+    the work on two workers, the last ones single tasks; far fewer Dask tasks than logs."""
+    order = list(range(200))[::-1]
+    batches = cluster.GuidedBatches(order, [1.0] * 200, workers=2)
+    cut = []
+    while batches:
+        cut.append(batches.next())
+    assert [i for batch in cut for i in batch] == order
+    sizes = [len(batch) for batch in cut]
+    assert sizes[0] == -(-200 // (2 * cluster.BATCH_SHARE))  # ceil: at least the share
+    assert sizes == sorted(sizes, reverse=True) and sizes[-3:] == [1, 1, 1]
+    assert len(cut) <= 40
+    # by weight: one heavy task is a batch of its own, light ones are grouped
+    weighted = cluster.GuidedBatches([0, 1, 2, 3, 4, 5], [50.0, 1, 1, 1, 1, 1], workers=1)
+    assert weighted.next() == [0] and len(weighted.next()) > 1
+
+
+@pytest.mark.xdist_group("dask")
+def test_a_task_that_fails_on_the_cluster_costs_only_itself(dask_cluster):
+    """A batch that fails is sent again one task at a time: only the failing task is
+    reported (with Dask's reason), every other one is done, each announced once."""
+    import math
+
+    done: list[int] = []
+    values = [float(x) for x in range(40)]
+    values[7] = -1.0  # math.sqrt raises ValueError on the worker
+    out = cluster.run_on_cluster(math.sqrt, [(v,) for v in values], dask_cluster,
+                                 on_crash=lambda task, why: f"failed: {why}",
+                                 notify=lambda i, r: done.append(i), order=range(40))
+    assert out.results[7] == "failed: on the Dask cluster: ValueError: math domain error"
+    assert [r for i, r in enumerate(out.results) if i != 7] == [
+        math.sqrt(v) for i, v in enumerate(values) if i != 7]
+    assert sorted(done) == list(range(40)) and not out.interrupted
+
+
 @pytest.mark.xdist_group("dask")
 def test_dask_tune_cross_validated_equals_local(tune_logs_with_bad, dask_cluster, tmp_path):
     docs = []

@@ -142,8 +142,8 @@ BATCH_SHARE = 3
 
 class GuidedBatches:
     """The tasks in ``order`` cut into batches as they are sent, each about
-    1/(BATCH_SHARE·workers) of the weight not yet sent, and at least one task (guided
-    self-scheduling).
+    1/(BATCH_SHARE·workers) of the weight not yet sent (``workers``: the cluster's threads
+    at that moment), and at least one task (guided self-scheduling).
 
     Why batches: every Dask task costs the worker, the scheduler and the client several
     milliseconds of CPU, and a short log's replay takes a few tens of them, so one task
@@ -153,17 +153,16 @@ class GuidedBatches:
     large last batch. The number of tasks grows with the logarithm of their count.
     """
 
-    def __init__(self, order: Sequence[int], weights: Sequence[float], workers: int):
+    def __init__(self, order: Sequence[int], weights: Sequence[float]):
         self._left = deque(order)
         self._weights = weights
-        self._share = max(1, workers) * BATCH_SHARE
         self._weight_left = float(sum(weights[i] for i in order))
 
     def __bool__(self) -> bool:
         return bool(self._left)
 
-    def next(self) -> list[int]:
-        target = self._weight_left / self._share
+    def next(self, workers: int) -> list[int]:
+        target = self._weight_left / (max(1, workers) * BATCH_SHARE)
         batch: list[int] = []
         taken = 0.0
         while self._left and (not batch or taken < target):
@@ -180,10 +179,9 @@ def run_batch(fn: Callable[..., Any], batch: Sequence[Task]) -> list[Any]:
 
 
 def _threads(client) -> int:
-    """Threads the cluster's workers offer now (the batches follow the cluster as it is
-    when they are cut: a worker that joins later shares the rest)."""
-    info = client.scheduler_info().get("workers", {})
-    return max(1, sum(int(w.get("nthreads", 1)) for w in info.values()))
+    """Threads the cluster's workers offer now (asked again after every batch: a worker
+    that joins later gets the next one)."""
+    return max(1, sum(client.nthreads().values()))
 
 
 def run_on_cluster(fn: Callable[..., Any], tasks: Sequence[Task], address: str,
@@ -205,18 +203,20 @@ def run_on_cluster(fn: Callable[..., Any], tasks: Sequence[Task], address: str,
     sent: dict[str, tuple[Any, list[int]]] = {}
     pending = as_completed(loop=client.loop)
 
+    batches = GuidedBatches(order, [1.0] * len(tasks) if weights is None else weights)
+
     def send(batch: list[int]) -> None:
         future = client.submit(run_batch, fn, [tasks[i] for i in batch], pure=False)
         sent[future.key] = (future, batch)
         pending.add(future)
 
-    try:
+    def top_up() -> None:
         threads = _threads(client)
-        batches = GuidedBatches(order, [1.0] * len(tasks) if weights is None else weights,
-                                threads)
-        for _ in range(threads):
-            if batches:
-                send(batches.next())
+        while batches and len(sent) < threads:
+            send(batches.next(threads))
+
+    try:
+        top_up()
         for future in pending:
             _, batch = sent.pop(future.key)
             try:
@@ -230,8 +230,7 @@ def run_on_cluster(fn: Callable[..., Any], tasks: Sequence[Task], address: str,
                 results = [on_crash(tasks[batch[0]], f"on the Dask cluster: {why}")]
             finally:
                 future.release()  # the worker may forget it now
-            if batches:
-                send(batches.next())
+            top_up()
             for i, result in zip(batch, results, strict=True):
                 out.results[i] = result
                 notify(i, result)

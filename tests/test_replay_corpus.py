@@ -462,18 +462,21 @@ def test_cluster_batches_shrink_to_single_tasks_and_cover_every_task_once():
     """Guided batches: every task once, in the order given; the first batch a sixth of
     the work on two workers, the last ones single tasks; far fewer Dask tasks than logs."""
     order = list(range(200))[::-1]
-    batches = cluster.GuidedBatches(order, [1.0] * 200, workers=2)
+    batches = cluster.GuidedBatches(order, [1.0] * 200)
     cut = []
     while batches:
-        cut.append(batches.next())
+        cut.append(batches.next(workers=2))
     assert [i for batch in cut for i in batch] == order
     sizes = [len(batch) for batch in cut]
     assert sizes[0] == -(-200 // (2 * cluster.BATCH_SHARE))  # ceil: at least the share
     assert sizes == sorted(sizes, reverse=True) and sizes[-3:] == [1, 1, 1]
     assert len(cut) <= 40
     # by weight: one heavy task is a batch of its own, light ones are grouped
-    weighted = cluster.GuidedBatches([0, 1, 2, 3, 4, 5], [50.0, 1, 1, 1, 1, 1], workers=1)
-    assert weighted.next() == [0] and len(weighted.next()) > 1
+    weighted = cluster.GuidedBatches([0, 1, 2, 3, 4, 5], [50.0, 1, 1, 1, 1, 1])
+    assert weighted.next(workers=1) == [0] and len(weighted.next(workers=1)) > 1
+    # more workers (one joined): smaller batches from then on
+    grown = cluster.GuidedBatches(range(120), [1.0] * 120)
+    assert len(grown.next(workers=1)) == 40 and len(grown.next(workers=4)) == 7
 
 
 @pytest.mark.xdist_group("dask")

@@ -498,26 +498,6 @@ def test_a_task_that_fails_on_the_cluster_costs_only_itself(dask_cluster):
 
 
 @pytest.mark.xdist_group("dask")
-def test_a_task_that_kills_its_dask_worker_costs_only_itself():
-    """A task that kills its worker process takes its batch with it; Dask retries the
-    batch, gives up (KilledWorker), and the batch is sent again task by task: only the
-    killer is reported. Its own cluster: the shared one keeps its workers."""
-    distributed = pytest.importorskip("distributed")
-
-    done: list[int] = []
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=":0") as c:
-        out = cluster.run_on_cluster(_double_or_die, [(x,) for x in range(12)],
-                                     c.scheduler_address,
-                                     on_crash=lambda task, why: f"crashed: {why}",
-                                     notify=lambda i, r: done.append(i), order=range(12))
-    assert out.results[3].startswith("crashed: on the Dask cluster: KilledWorker"), out.results
-    assert [r for i, r in enumerate(out.results) if i != 3] == [
-        2 * x for x in range(12) if x != 3]
-    assert sorted(done) == list(range(12))
-
-
-@pytest.mark.xdist_group("dask")
 def test_dask_tune_cross_validated_equals_local(tune_logs_with_bad, dask_cluster, tmp_path):
     docs = []
     for where in (["--jobs", "1"], ["--scheduler", dask_cluster]):

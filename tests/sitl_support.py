@@ -42,20 +42,31 @@ TRUTH_TYPES = ("SIMSTATE", "HIL_STATE_QUATERNION")
 
 @dataclass
 class BridgeProcess:
-    """``attitude-bridge run`` in a subprocess, stopped with SIGINT like a user would."""
+    """``attitude-bridge run`` in a subprocess, watched through its status file and
+    stopped with SIGINT like a user would."""
 
     proc: subprocess.Popen
     status_file: Path
-    record: Path
+    record: Path | None
     log_file: Path
 
     @classmethod
     def start(cls, folder: Path, connect: str, *extra: str) -> BridgeProcess:
-        status, record, log = folder / "status.json", folder / "session.tlog", folder / "log"
-        cmd = [sys.executable, "-m", "bridge.app.cli", "run", "--connect", connect,
-               "--status-file", str(status), "--record", str(record), *extra]
+        """Listening on ``connect`` and recording the session (``record``)."""
+        record = folder / "session.tlog"
+        return cls.run(folder, "--connect", connect, "--record", str(record), *extra,
+                       record=record)
+
+    @classmethod
+    def run(cls, folder: Path, *args: str, record: Path | None = None,
+            env: dict[str, str] | None = None):
+        """``run --status-file FOLDER/status.json ARGS``, its log in ``FOLDER/log``."""
+        status, log = folder / "status.json", folder / "log"
+        cmd = [sys.executable, "-m", "bridge.app.cli", "run", "--status-file", str(status),
+               *args]
         proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL,
-                                stderr=log.open("w"), env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                stderr=log.open("w"),
+                                env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})})
         return cls(proc, status, record, log)
 
     def status(self) -> dict:

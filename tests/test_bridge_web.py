@@ -35,7 +35,7 @@ CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-
 
 @pytest.fixture(scope="module")
 def bridge(tmp_path_factory):
-    b = WebBridge(tmp_path_factory.mktemp("web"), "-e", "eskf", "-e", "mahony")
+    b = WebBridge.serving(tmp_path_factory.mktemp("web"), "-e", "eskf", "-e", "mahony")
     try:
         b.wait_for(lambda st: st["vehicles"].get("1", {}).get("compare", {}).get("truth"),
                    60, "comparison with the emulator's truth")

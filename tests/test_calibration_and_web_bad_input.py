@@ -86,8 +86,8 @@ def test_run_refuses_them_in_one_line_with_exit_2(tmp_path):
 
 @pytest.fixture(scope="module")
 def bridge(tmp_path_factory):
-    b = WebBridge(tmp_path_factory.mktemp("web_bad_input"), "-e", "mahony",
-                  env={"ATTITUDE_BRIDGE_DEBUG": "1"})
+    b = WebBridge.serving(tmp_path_factory.mktemp("web_bad_input"), "-e", "mahony",
+                          env={"ATTITUDE_BRIDGE_DEBUG": "1"})
     try:
         yield b
     finally:

@@ -21,7 +21,7 @@ from bridge_support import (
 )
 
 from bridge.app.config import BridgeConfig
-from bridge.estimate.compare import compare_series
+from bridge.estimate.compare import compare_series, pairs_at_shift
 from bridge.estimate.pipeline import Estimate
 from bridge.publish.mqtt import MqttSettings
 from bridge.publish.output import AttitudeOutput
@@ -34,6 +34,7 @@ from bridge.wire.links import open_link, parse_url
 from bridge.wire.mav import mavlink
 from bridge.wire.sequence import SequenceTracker
 from estimators import quat as Q
+from estimators.shifted_error import rms_at_shifts
 from estimators.spec import EstimatorSpec
 from imu.boards import gy86
 from imu.rotations import rotation_matrix
@@ -468,6 +469,32 @@ def test_compare_reports_an_unmeasurable_lag_as_unknown_never_the_grid_end():
     # A causal estimator on the truth's clock: 0 is a lag (the grid's closed end).
     same = compare_series(t, ref, t, ref, grid, score_at_best=False, open_ends=(False, True))
     assert same.lag_s == 0.0
+
+
+def test_all_shifts_at_once_equal_each_shift_on_its_own():
+    """The compiled search scores every shift as pairing at that shift alone does: the
+    same pairs (an estimate series with a hole wider than the gap allowed, a reference
+    that runs past its end) and NaN where too few pairs are left."""
+    rng = np.random.default_rng(3)
+    t_est = np.cumsum(rng.choice([0.0025, 0.005], size=1500))
+    t_est = np.delete(t_est, np.arange(600, 640))  # a 0.15 s hole
+    q_est = Q.from_euler(0.3 * np.sin(t_est), 0.2 * np.cos(2 * t_est),
+                         1.5 * np.sin(0.7 * t_est))
+    t_ref = np.arange(0.5, t_est[-1] + 0.4, 0.02)
+    q_ref = Q.from_euler(0.3 * np.sin(t_ref - 0.01), 0.2 * np.cos(2 * t_ref),
+                         1.5 * np.sin(0.7 * t_ref))
+    shifts = np.arange(-0.3, 0.3001, 0.004)
+    max_gap = 0.0101
+    min_pairs = int(0.92 * len(t_ref))  # the later shifts fall short of it
+    rms = rms_at_shifts(t_est, q_est, t_ref, q_ref, shifts, max_gap, min_pairs)
+    for shift, got in zip(shifts, rms, strict=True):
+        est, ref = pairs_at_shift(t_est, q_est, t_ref, q_ref, float(shift), max_gap)
+        if len(est) < min_pairs:
+            assert np.isnan(got)
+        else:
+            assert got == pytest.approx(np.sqrt(np.mean(Q.angle_between(est, ref) ** 2)),
+                                        rel=1e-12)
+    assert np.isnan(rms).any() and np.isfinite(rms).any()
 
 
 def test_kernel_filter_keeps_vehicles_and_heartbeats_and_samples_the_rest():

@@ -218,7 +218,7 @@ async def serve(cfg: BridgeConfig) -> int:
     # on disk; `attitude-bridge warmup` does it ahead): show which one, never a silent
     # terminal.
     progress = LineProgress("attitude-bridge: preparing estimators (compiled on first "
-                            "use, then cached)", len(cfg.estimators))
+                            "use, then cached)", len(cfg.estimators) + 1)
     service.on_progress = progress
     if cfg.table:
         service.on_status = LiveTable()

@@ -1,4 +1,5 @@
-"""``attitude-bridge warmup``: compile the estimators (and the emulator) ahead of use.
+"""``attitude-bridge warmup``: compile the estimators (the live comparison, the emulator)
+ahead of use.
 
 numba compiles each estimator's kernels the first time one is created, about 10–40 s
 each on a small machine, and keeps them in its on-disk cache (next to the package, or
@@ -39,6 +40,15 @@ def warm_up(spec: EstimatorSpec) -> None:
     quat.to_euler(est.q)
 
 
+def warm_up_comparison() -> None:
+    """Compile the live comparison's shift search (every bridge with a reference)."""
+    from estimators.shifted_error import rms_at_shifts
+
+    t = np.array([0.0, 0.01, 0.02])
+    q = np.tile(quat.identity(), (3, 1))
+    rms_at_shifts(t, q, t, q, np.array([0.0]), 0.02, 1)
+
+
 def warm_up_emulator() -> None:
     """Compile the emulated MPU6050's low-pass filter (the HIL emulator's one kernel)."""
     from hil import EmulatorConfig, simulate
@@ -57,10 +67,11 @@ def warm_up_smoother() -> None:
 
 def warm_up_all(specs: Iterable[EstimatorSpec], progress: Progress | None = None,
                 emulator: bool = False) -> dict[str, float]:
-    """Compile each estimator (and optionally the emulator and the smoother); seconds
-    taken per item."""
+    """Compile each estimator, the live comparison (and optionally the emulator and the
+    smoother); seconds taken per item."""
     jobs: list[tuple[str, Callable[[], None]]] = [
         (spec.label, lambda s=spec: warm_up(s)) for spec in specs]
+    jobs.append(("comparison", warm_up_comparison))
     if emulator:
         jobs.append(("emulator", warm_up_emulator))
         jobs.append(("smoother", warm_up_smoother))
@@ -135,12 +146,12 @@ class LineProgress:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "warmup", help="compile the estimators now (numba, cached on disk)",
-        description="Compile every estimator's kernels and the emulator's, so the first "
-                    "run starts at once. install.sh runs it; run it again after an "
-                    "upgrade or with another NUMBA_CACHE_DIR.")
+        description="Compile every estimator's kernels, the live comparison's and the "
+                    "emulator's, so the first run starts at once. install.sh runs it; run "
+                    "it again after an upgrade or with another NUMBA_CACHE_DIR.")
     p.add_argument("names", nargs="*", metavar="ESTIMATOR",
-                   help="only these estimators (default: all, the emulator and the "
-                        "smoother)")
+                   help="only these estimators and the live comparison (default: all, "
+                        "the emulator and the smoother)")
     p.set_defaults(func=_run)
 
 
@@ -149,7 +160,7 @@ def _run(args: argparse.Namespace) -> int:
 
     specs = [EstimatorSpec.parse(n) for n in (args.names or estimators.names())]
     progress = LineProgress("attitude-bridge warmup: compiling",
-                            len(specs) + (0 if args.names else 2))
+                            len(specs) + (1 if args.names else 3))
     start = time.perf_counter()
     try:
         warm_up_all(specs, progress, emulator=not args.names)

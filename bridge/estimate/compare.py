@@ -25,6 +25,7 @@ import numpy as np
 
 from estimators import metrics
 from estimators import quat as Q
+from estimators.shifted_error import rms_at_shifts
 
 from ..vehicle.references import TRUTH, VEHICLE, References
 from ..vehicle.ring import TimeRing
@@ -89,16 +90,11 @@ def compare_series(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
     step = max(1, len(t_ref) // max_points)
     t_r, q_r = t_ref[::step], q_ref[::step]
     max_gap = 2.0 * float(np.median(np.diff(t_est))) + 1e-4
-    best, best_rms = -1, np.inf
-    for i, shift in enumerate(shifts):
-        e, r = pairs_at_shift(t_est, q_est, t_r, q_r, float(shift), max_gap)
-        if len(e) < max(3, len(t_r) // 4):
-            continue
-        rms = float(np.sqrt(np.mean(Q.angle_between(e, r) ** 2)))
-        if rms < best_rms:
-            best, best_rms = i, rms
-    if not np.isfinite(best_rms):
+    rms_by_shift = rms_at_shifts(t_est, q_est, t_r, q_r, shifts, max_gap,
+                                 min_pairs=max(3, len(t_r) // 4))
+    if not np.isfinite(rms_by_shift).any():
         return None
+    best = int(np.nanargmin(rms_by_shift))
     lag: float | None = float(shifts[best])
     note = ""
     if np.degrees(np.max(Q.angle_between(q_r, q_r[:1]))) < MIN_MOTION_DEG:

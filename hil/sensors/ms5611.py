@@ -72,8 +72,15 @@ class Compensated:
 
 def compensate(c: tuple[int, ...], d1: int, d2: int, second_order: bool = True) -> Compensated:
     """Datasheet compensation (figure "pressure and temperature calculation")."""
+    temp, off, sens = _terms(c, int(d2), second_order)
+    pressure = (((int(d1) * sens) >> 21) - off) >> 15
+    return Compensated(temp_cdeg=temp, pressure_pa=pressure)
+
+
+def _terms(c: tuple[int, ...], d2: int, second_order: bool = True) -> tuple[int, int, int]:
+    """TEMP, OFF and SENS for the temperature word D2 (the part of the compensation that
+    does not depend on D1)."""
     c1, c2, c3, c4, c5, c6 = (int(v) for v in c)
-    d1, d2 = int(d1), int(d2)
     dt = d2 - (c5 << 8)
     temp = 2000 + ((dt * c6) >> 23)
     off = (c2 << 16) + ((c4 * dt) >> 7)
@@ -88,26 +95,58 @@ def compensate(c: tuple[int, ...], d1: int, d2: int, second_order: bool = True) 
         temp -= t2
         off -= off2
         sens -= sens2
-    pressure = (((d1 * sens) >> 21) - off) >> 15
-    return Compensated(temp_cdeg=temp, pressure_pa=pressure)
+    return temp, off, sens
 
 
 def raw_from_true(c: tuple[int, ...], pressure_pa: float, temp_c: float) -> tuple[int, int]:
     """D1, D2 that the chip would output for a true pressure [Pa] and temperature [°C].
 
     The board's compensation is monotonic in D2 (for TEMP) and in D1 (for P at fixed
-    D2), so a bisection over the 24-bit range finds the words whose compensated values
-    are nearest the truth, second-order terms included.
+    D2), so a search over the 24-bit range finds the words whose compensated values are
+    nearest the truth, second-order terms included. It starts from the first-order
+    inverse (the emulator converts every barometer reading this way), which is a few
+    steps from the answer.
     """
-    d2 = _nearest(lambda x: compensate(c, 0, x).temp_cdeg, temp_c * 100.0)
-    d1 = _nearest(lambda x: compensate(c, x, d2).pressure_pa, pressure_pa)
+    c6, c5 = int(c[5]), int(c[4])
+
+    def temp_of(x: int) -> int:
+        return _terms(c, x)[0]
+
+    target_t = temp_c * 100.0
+    guess = (c5 << 8) + (target_t - 2000.0) * (1 << 23) / c6
+    for _ in range(2):  # the second-order term, below 20 °C, moves the answer
+        guess += (target_t - temp_of(_clip(guess))) * (1 << 23) / c6
+    d2 = _nearest(temp_of, target_t, _clip(guess))
+    _, off, sens = _terms(c, d2)
+    guess_1 = ((pressure_pa * (1 << 15)) + off) * (1 << 21) / max(sens, 1)
+    d1 = _nearest(lambda x: (((x * sens) >> 21) - off) >> 15, pressure_pa, _clip(guess_1))
     return d1, d2
 
 
-def _nearest(f, target: float) -> int:
-    """Integer x in [0, ADC_MAX] whose monotonic non-decreasing f(x) is nearest target."""
-    lo, hi = 0, ADC_MAX
-    while lo < hi:  # smallest x with f(x) >= target
+def _clip(x: float) -> int:
+    return min(max(int(x), 0), ADC_MAX)
+
+
+def _nearest(f, target: float, guess: int) -> int:
+    """Integer x in [0, ADC_MAX] whose monotonic non-decreasing f(x) is nearest target:
+    the smallest x with f(x) >= target (bracketed by steps doubling away from ``guess``,
+    then bisected), or the one before it if that is as near."""
+    lo, hi, step = 0, ADC_MAX, 1
+    if f(guess) >= target:
+        hi = guess
+        while guess - step > 0:
+            if f(guess - step) < target:
+                lo = guess - step + 1
+                break
+            hi, step = guess - step, 2 * step
+    else:
+        lo = guess + 1
+        while guess + step < ADC_MAX:
+            if f(guess + step) >= target:
+                hi = guess + step
+                break
+            lo, step = guess + step + 1, 2 * step
+    while lo < hi:
         mid = (lo + hi) // 2
         if f(mid) >= target:
             hi = mid

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
+import operator
 import os
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
@@ -368,7 +369,11 @@ def _pick_imu(messages: dict[str, list], imu: str | None, path: Path,
 
 
 def _fields(rows: list, *names: str) -> np.ndarray:
-    return np.array([[getattr(m, n) for n in names] for m in rows], dtype=float)
+    """(len(rows), len(names)) array of the named fields of each message."""
+    get = operator.attrgetter(*names)
+    if len(names) == 1:
+        return np.fromiter(map(get, rows), dtype=float, count=len(rows))[:, None]
+    return np.array(list(map(get, rows)), dtype=float).reshape(len(rows), len(names))
 
 
 def _imu_arrays(kind: str, rows: list, board: str | None, truncated: bool = False

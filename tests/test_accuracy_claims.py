@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from recordings import recording
 
 import estimators
 from estimators.metrics import rms_errors
 from replay.evaluate import evaluate
-from replay.readers import load
 
 HEADROOM = 1.1
 SITL = Path(__file__).parent / "data" / "sitl"
@@ -62,7 +62,7 @@ def test_broad_dev_trials_mean_and_worst_beat_vqf(data_dir):
 @pytest.mark.parametrize("name", sorted(PX4_MEASURED))
 def test_px4_sih_whole_flight_beats_px4s_own_attitude(data_dir, name):
     path = (SITL.parent / name) if name.startswith("sitl/") else data_dir / name
-    rec = load(path, reference="truth")
+    rec = recording(path, reference="truth")
     ev = evaluate(rec, ["eskf"])
     assert ev.prepared.aid == "velocity" and ev.prepared.flight.known
     score = ev.scores["eskf"]
@@ -84,7 +84,7 @@ def test_arducopter_sitl_flight_scored_against_simstate(name, total, inclination
     limit, docs/accuracy.md). Its RAW_IMU is the 20 Hz low-passed gyro: without carrying
     the estimate forward by the filter's delay the inclination is 0.228° and 0.262°."""
     path = SITL / name
-    rec = load(path, reference="truth")
+    rec = recording(path, reference="truth")
     assert rec.reference.source == "SIMSTATE" and rec.reference.kind == "truth"
     ev = evaluate(rec, ["eskf", "eskf:imu_delay=0"])
     assert ev.prepared.imu_delay.source == "ArduPilot default INS_GYRO_FILTER 20 Hz"
@@ -105,7 +105,7 @@ def test_px4_live_session_kept_for_its_inclination():
     2.03 / 0.78 (total / inclination) against PX4's own 1.85 / 0.75; before μ was
     estimated in logarithm, 2.10 / 0.93, beyond the live test's 1.2× PX4's inclination."""
     path = Path(__file__).parent / "data" / "live" / "px4_sih_start_heading.tlog"
-    rec = load(path, reference="truth")
+    rec = recording(path, reference="truth")
     ev = evaluate(rec, ["eskf"])
     assert ev.prepared.aid == "velocity" and ev.prepared.flight.known
     score = ev.scores["eskf"]
@@ -134,7 +134,7 @@ def test_aiding_and_the_drag_model_together_are_no_worse_than_either_alone(data_
     (the excess over 1 held with 1.5x headroom): once 1.012 on PX4 box, when the
     start-up rest levelled the drag-only runs but not the aided ones."""
     path = (SITL.parent / name) if name.startswith("sitl/") else data_dir / name
-    rec = load(path, reference="truth")
+    rec = recording(path, reference="truth")
     both = evaluate(rec, ["eskf", "eskf:drag=0"])
     assert both.prepared.aid == "velocity" and both.prepared.flight.known
     drag_only = evaluate(rec, ["eskf"], aid="none").scores["eskf"].total_deg

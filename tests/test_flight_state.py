@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from recordings import recording
 
 from imu import flight_state as fs
 from replay.dataset import ReplayInputError
@@ -97,7 +98,7 @@ def test_a_landed_state_flipping_every_message_never_switches_and_falls_back(cap
 def test_replay_follows_px4s_touchdown_and_second_take_off():
     """A real PX4 SIH flight: 10 s disarmed, take-off, touchdown, 10 s on the ground,
     second take-off, landing (tests/data/sitl)."""
-    rec = load(SITL / "px4_sih_touchdown.tlog")
+    rec = recording(SITL / "px4_sih_touchdown.tlog")
     fl = track(rec)
     assert fl.known and "EXTENDED_SYS_STATE" in fl.events_source
     states = [s.airborne for s in fl.switches]
@@ -173,7 +174,7 @@ def test_ulog_land_detector_and_arming_are_read(data_dir):
 
 
 def test_phases_cover_every_sample_of_a_recording():
-    rec = load(SITL / "px4_sih_dashes.tlog")
+    rec = recording(SITL / "px4_sih_dashes.tlog")
     ph = track(rec).phase
     assert ph.shape == (rec.n,) and ph.min() >= 0 and ph.max() < len(PHASES)
     # "unknown" only before the first report (a second at most)
@@ -191,7 +192,7 @@ def test_replay_output_shows_the_state_its_switches_and_the_phases(tmp_path):
     from replay.report import write_report
     from replay.summary import print_summary
 
-    ev = evaluate(load(SITL / "px4_sih_touchdown.tlog"), ["eskf"])
+    ev = evaluate(recording(SITL / "px4_sih_touchdown.tlog"), ["eskf"])
     doc = ev.as_json()["flight_state"]
     assert [s["state"] for s in doc["switches"]] == ["on ground", "airborne", "on ground",
                                                      "airborne", "on ground"]

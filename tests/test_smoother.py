@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from recordings import recording
 
 import estimators
 from bridge.app.cli import main
@@ -55,7 +56,7 @@ def test_smoothed_ardupilot_flight_inclination_is_a_third_of_ardupilots(name, to
     the online filter). Measured: 0.363 / 0.059 and 0.221 / 0.046; ArduPilot's own
     1.11 / 0.18 and 1.62 / 0.18; without the IMU delay the smoothed inclination was 0.13
     and 0.14."""
-    ev = evaluate(load(SITL_DIR / name), ["eskf"], smooth=True)
+    ev = evaluate(recording(SITL_DIR / name), ["eskf"], smooth=True)
     assert ev.prepared.imu_delay.seconds > 0.011
     smoothed, own = ev.scores["eskf smoothed"], ev.scores["autopilot"]
     assert smoothed.total_deg <= HEADROOM * total, smoothed.total_deg
@@ -69,7 +70,7 @@ def test_broad_smoothed_beats_online_inclination(data_dir):
     README states them, and its inclination well below the online filter's."""
     totals, incl, incl_online = [], [], []
     for path in sorted((data_dir / "broad").glob("*.npz")):
-        ev = evaluate(load(path), ["eskf"], smooth=True)
+        ev = evaluate(recording(path), ["eskf"], smooth=True)
         totals.append(ev.scores["eskf smoothed"].total_deg)
         incl.append(ev.scores["eskf smoothed"].inclination_deg)
         incl_online.append(ev.scores["eskf"].inclination_deg)
@@ -112,7 +113,7 @@ def test_broad_fast_trial_inclination_is_half_timing(data_dir):
 
 
 def _box(data_dir):
-    rec = load(data_dir / "px4_sih" / "sih_box.tlog")
+    rec = recording(data_dir / "px4_sih" / "sih_box.tlog")
     prep = prepare(rec)
     sl = slice(0, None)
     kwargs = dict(rate_hz=rec.rate_hz, world=rec.world, dt=rec.dt,

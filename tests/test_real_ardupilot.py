@@ -93,7 +93,7 @@ def test_arducopter_flight_through_the_bridge(tmp_path):
     # sees the whole flight can be better than ours: 2.15 against 2.31° once in four)
     replayed = replayed_beside_vqf(bridge.record, "ArduPilot")
     # the live comparison's whole-session numbers are the replay's (sitl_support)
-    check_live_session_matches_replay(bridge.vehicle(1)["session_vs_truth"], replayed)
+    check_live_session_matches_replay(bridge.vehicle(1), replayed)
     online, smoothed = replayed["eskf"], replayed["eskf smoothed"]
     vqf_online, vqf_offline = replayed["vqf online"], replayed["vqf offline"]
     assert online.total_deg < vqf_online.total_deg, replayed

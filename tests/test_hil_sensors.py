@@ -177,6 +177,29 @@ def test_ms5611_raw_words_invert_the_compensation(pressure, temp_c):
     assert abs(out.pressure_pa - pressure) <= 1
 
 
+def _nearest_by_bisection(f, target: float) -> int:
+    """The plain search over the whole 24-bit range: the reference for the fast one."""
+    lo, hi = 0, ms5611.ADC_MAX
+    while lo < hi:
+        mid = (lo + hi) // 2
+        lo, hi = (lo, mid) if f(mid) >= target else (mid + 1, hi)
+    if lo > 0 and abs(f(lo - 1) - target) <= abs(f(lo) - target):
+        return lo - 1
+    return lo
+
+
+@pytest.mark.parametrize("temp_c", [-60.0, -40.0, -16.0, 0.0, 19.99, 20.0, 45.0, 85.0, 150.0])
+@pytest.mark.parametrize("pressure", [0.0, 1000.0, 30000.0, 101325.0, 120000.0, 5e6])
+def test_ms5611_words_from_the_first_order_guess_are_the_whole_range_search(pressure,
+                                                                             temp_c):
+    """The emulator's search starts from the first-order inverse; it finds the words the
+    whole-range bisection finds, to the range's ends (words 0 and 2^24 - 1)."""
+    c = ms5611.DATASHEET_C
+    d2 = _nearest_by_bisection(lambda x: ms5611.compensate(c, 0, x).temp_cdeg, temp_c * 100)
+    d1 = _nearest_by_bisection(lambda x: ms5611.compensate(c, x, d2).pressure_pa, pressure)
+    assert ms5611.raw_from_true(c, pressure, temp_c) == (d1, d2)
+
+
 def test_ms5611_second_order_matters_when_cold():
     d1, d2 = ms5611.raw_from_true(ms5611.DATASHEET_C, 90000.0, -20.0)
     first = ms5611.compensate(ms5611.DATASHEET_C, d1, d2, second_order=False)

@@ -139,8 +139,8 @@ def _nearest(f, target: float, guess: int) -> int:
                 lo = guess - step + 1
                 break
             hi, step = guess - step, 2 * step
-    else:
-        lo = guess + 1
+    else:  # (none at all: ADC_MAX, as the plain bisection ends)
+        lo = min(guess + 1, ADC_MAX)
         while guess + step < ADC_MAX:
             if f(guess + step) >= target:
                 hi = guess + step

@@ -188,12 +188,14 @@ def _nearest_by_bisection(f, target: float) -> int:
     return lo
 
 
-@pytest.mark.parametrize("temp_c", [-60.0, -40.0, -16.0, 0.0, 19.99, 20.0, 45.0, 85.0, 150.0])
-@pytest.mark.parametrize("pressure", [0.0, 1000.0, 30000.0, 101325.0, 120000.0, 5e6])
+@pytest.mark.parametrize("temp_c", [-60.0, -40.0, -16.0, 0.0, 19.99, 20.0, 45.0, 85.0, 150.0,
+                                    math.nan])
+@pytest.mark.parametrize("pressure", [0.0, 1000.0, 30000.0, 101325.0, 120000.0, 5e6, math.nan])
 def test_ms5611_words_from_the_first_order_guess_are_the_whole_range_search(pressure,
                                                                              temp_c):
     """The emulator's search starts from the first-order inverse; it finds the words the
-    whole-range bisection finds, to the range's ends (words 0 and 2^24 - 1)."""
+    whole-range bisection finds, to the range's ends (words 0 and 2^24 - 1), and for a
+    value that is no number (where both end at the top of the range, without an error)."""
     c = ms5611.DATASHEET_C
     d2 = _nearest_by_bisection(lambda x: ms5611.compensate(c, 0, x).temp_cdeg, temp_c * 100)
     d1 = _nearest_by_bisection(lambda x: ms5611.compensate(c, x, d2).pressure_pa, pressure)

@@ -13,6 +13,7 @@ two done as arithmetic right shifts, i.e. rounding towards minus infinity).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -124,6 +125,10 @@ def raw_from_true(c: tuple[int, ...], pressure_pa: float, temp_c: float) -> tupl
 
 
 def _clip(x: float) -> int:
+    """A starting word for the search: ``x`` in the ADC's range (mid-range if not finite:
+    the search then ends where the whole-range bisection does)."""
+    if not math.isfinite(x):
+        return ADC_MAX // 2
     return min(max(int(x), 0), ADC_MAX)
 
 

@@ -37,7 +37,7 @@ if __package__ in (None, ""):
 from benchmarks.accuracy import DATA, REPO, Trial, broad_trials, sitl_trials, vqf_rows
 from estimators import smooth
 from estimators.metrics import rms_errors
-from estimators.quat import slerp
+from replay.align import earlier_on_grid
 
 GRID: dict[str, tuple[float, ...]] = {
     "mag_noise": (0.15, 0.25, 0.4),
@@ -50,19 +50,6 @@ GRID: dict[str, tuple[float, ...]] = {
 
 #: How much earlier the diagnostic takes BROAD's truth [ms].
 TRUTH_EARLIER_MS = 2.0
-
-
-def truth_earlier(trial: Trial, ms: float) -> np.ndarray:
-    """The trial's truth ``ms`` earlier on its IMU clock (slerped between samples; NaN
-    where that time is before the recording)."""
-    shift = ms / 1000.0 * trial.rate_hz
-    whole = int(np.floor(shift))
-    frac = np.full(len(trial.truth), shift - whole)
-    later = np.roll(trial.truth, whole, axis=0)
-    earlier = np.roll(trial.truth, whole + 1, axis=0)
-    out = slerp(later, earlier, frac)
-    out[: whole + 1] = np.nan
-    return out
 
 
 def smoothed(trial: Trial, **params: float):
@@ -114,7 +101,7 @@ def broad_part(doc: dict) -> dict[str, np.ndarray]:
                       ("vqf offline", [vqf_rows(t)["vqf offline"] for t in trials])):
         timing[label] = []
         for t, q in zip(trials, qs, strict=True):
-            truth = truth_earlier(t, TRUTH_EARLIER_MS)
+            truth = earlier_on_grid(t.truth, t.rate_hz, TRUTH_EARLIER_MS / 1000.0)
             ok = t.scored & np.all(np.isfinite(truth), axis=1)
             timing[label].append(rms_errors(q[ok], truth[ok]).inclination_deg)
     print("BROAD dev trials: total / inclination RMS [deg]; mean, worst trial")

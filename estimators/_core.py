@@ -143,6 +143,28 @@ def finite3(x: float, y: float, z: float) -> bool:
 
 
 @kernel(inline="always")
+def quat_multiply(a0: float, a1: float, a2: float, a3: float, b0: float, b1: float,
+                  b2: float, b3: float) -> tuple:
+    """Hamilton product a ⊗ b of two quaternions given by their components (the compiled
+    kernels' form of ``estimators.quat.multiply``)."""
+    return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3,
+            a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
+            a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1,
+            a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
+
+
+@kernel(inline="always")
+def quat_exp(x: float, y: float, z: float) -> tuple:
+    """Quaternion of the rotation vector (x, y, z) [rad] (the compiled kernels' form of
+    ``estimators.quat.from_rotvec``)."""
+    angle = math.sqrt(x * x + y * y + z * z)
+    if angle < 1e-12:
+        return 1.0, 0.5 * x, 0.5 * y, 0.5 * z
+    s = math.sin(0.5 * angle) / angle
+    return math.cos(0.5 * angle), x * s, y * s, z * s
+
+
+@kernel(inline="always")
 def acc_usable(ax: float, ay: float, az: float, acc_range: float) -> bool:
     """Finite, not ~zero, and no axis clipped at full scale."""
     if not finite3(ax, ay, az):

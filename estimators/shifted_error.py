@@ -9,7 +9,8 @@ reference, on the vehicle's companion computer, so it is one compiled pass inste
 stack of numpy temporaries per shift.
 
 The pairing is :func:`estimators.quat.bracket` and :func:`estimators.quat.slerp`, the
-error :func:`estimators.quat.angle_between`, written out per sample.
+error :func:`estimators.quat.angle_between`, per sample with the compiled quaternion
+helpers of :mod:`estimators._core`.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import math
 
 import numpy as np
 
-from ._core import kernel
+from ._core import kernel, quat_exp, quat_multiply
 
 
 @kernel
@@ -42,10 +43,7 @@ def _rms_at_shifts(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
             aw, ax, ay, az = q_est[i, 0], q_est[i, 1], q_est[i, 2], q_est[i, 3]
             bw, bx, by, bz = q_est[i + 1, 0], q_est[i + 1, 1], q_est[i + 1, 2], q_est[i + 1, 3]
             # step = a* ⊗ b, sign-fixed, normalised
-            sw = aw * bw + ax * bx + ay * by + az * bz
-            sx = aw * bx - ax * bw - ay * bz + az * by
-            sy = aw * by + ax * bz - ay * bw - az * bx
-            sz = aw * bz - ax * by + ay * bx - az * bw
+            sw, sx, sy, sz = quat_multiply(aw, -ax, -ay, -az, bw, bx, by, bz)
             norm = math.sqrt(sw * sw + sx * sx + sy * sy + sz * sz)
             sw, sx, sy, sz = sw / norm, sx / norm, sy / norm, sz / norm
             if sw < 0.0:
@@ -53,26 +51,16 @@ def _rms_at_shifts(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
             # its rotation vector, scaled by frac, back to a quaternion d
             vn = math.sqrt(sx * sx + sy * sy + sz * sz)
             scale = 2.0 / max(sw, 1e-300) if vn < 1e-9 else 2.0 * math.atan2(vn, sw) / vn
-            rx, ry, rz = frac * scale * sx, frac * scale * sy, frac * scale * sz
-            angle = math.sqrt(rx * rx + ry * ry + rz * rz)
-            half = 0.5 * angle
-            k_sin = 0.5 - angle * angle / 48.0 if angle < 1e-6 else math.sin(half) / angle
-            dw, dx, dy, dz = math.cos(half), rx * k_sin, ry * k_sin, rz * k_sin
+            dw, dx, dy, dz = quat_exp(frac * scale * sx, frac * scale * sy, frac * scale * sz)
             # estimate e = a ⊗ d, normalised
-            ew = aw * dw - ax * dx - ay * dy - az * dz
-            ex = aw * dx + ax * dw + ay * dz - az * dy
-            ey = aw * dy - ax * dz + ay * dw + az * dx
-            ez = aw * dz + ax * dy - ay * dx + az * dw
+            ew, ex, ey, ez = quat_multiply(aw, ax, ay, az, dw, dx, dy, dz)
             norm = math.sqrt(ew * ew + ex * ex + ey * ey + ez * ez)
             ew, ex, ey, ez = ew / norm, ex / norm, ey / norm, ez / norm
             # error e ⊗ r*, r normalised
             cw, cx, cy, cz = q_ref[k, 0], q_ref[k, 1], q_ref[k, 2], q_ref[k, 3]
             norm = math.sqrt(cw * cw + cx * cx + cy * cy + cz * cz)
             cw, cx, cy, cz = cw / norm, -cx / norm, -cy / norm, -cz / norm
-            fw = ew * cw - ex * cx - ey * cy - ez * cz
-            fx = ew * cx + ex * cw + ey * cz - ez * cy
-            fy = ew * cy - ex * cz + ey * cw + ez * cx
-            fz = ew * cz + ex * cy - ey * cx + ez * cw
+            fw, fx, fy, fz = quat_multiply(ew, ex, ey, ez, cw, cx, cy, cz)
             err = 2.0 * math.atan2(math.sqrt(fx * fx + fy * fy + fz * fz), abs(fw))
             total += err * err
             pairs += 1

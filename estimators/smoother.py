@@ -44,6 +44,7 @@ import numpy as np
 from numba import njit
 
 from . import _core, eskf
+from ._core import quat_exp, quat_multiply
 from .base import BatchResult, SampleCounters, turned_forward
 
 _NX = 10
@@ -159,23 +160,6 @@ def _forward(est, cuts: list[int], code: np.ndarray, G: np.ndarray, A: np.ndarra
     return k
 
 
-@njit(cache=True, inline="always")
-def _qmul(a0, a1, a2, a3, b0, b1, b2, b3):
-    return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3,
-            a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
-            a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1,
-            a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
-
-
-@njit(cache=True, inline="always")
-def _qexp(x, y, z):
-    angle = math.sqrt(x * x + y * y + z * z)
-    if angle < 1e-12:
-        return 1.0, 0.5 * x, 0.5 * y, 0.5 * z
-    s = math.sin(0.5 * angle) / angle
-    return math.cos(0.5 * angle), x * s, y * s, z * s
-
-
 @njit(cache=True)
 def _backward(tap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """RTS over the tap rows: (δˢ against each posterior, e against each prediction)."""
@@ -187,10 +171,10 @@ def _backward(tap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     for k in range(K - 2, -1, -1):
         j = k + 1
         # e_j = (x̂_j⁺ ⊕ δˢ_j) ⊖ x̂_j⁻
-        qs = _qexp(d[j, 0], d[j, 1], d[j, 2])
-        qs = _qmul(qs[0], qs[1], qs[2], qs[3], tap[j, post], tap[j, post + 1],
+        qs = quat_exp(d[j, 0], d[j, 1], d[j, 2])
+        qs = quat_multiply(qs[0], qs[1], qs[2], qs[3], tap[j, post], tap[j, post + 1],
                    tap[j, post + 2], tap[j, post + 3])
-        dq = _qmul(qs[0], qs[1], qs[2], qs[3], tap[j, pri], -tap[j, pri + 1],
+        dq = quat_multiply(qs[0], qs[1], qs[2], qs[3], tap[j, pri], -tap[j, pri + 1],
                    -tap[j, pri + 2], -tap[j, pri + 3])
         sgn = 1.0 if dq[0] >= 0.0 else -1.0
         vn = math.sqrt(dq[1] ** 2 + dq[2] ** 2 + dq[3] ** 2)
@@ -252,8 +236,8 @@ def _apply(q: np.ndarray, b: np.ndarray, at: np.ndarray, d: np.ndarray, e: np.nd
             uz = rw[2, 0] * x + rw[2, 1] * y + rw[2, 2] * z
             if not (math.isfinite(q[i, 0]) and math.isfinite(ux + uy + uz)):
                 continue
-            c = _qexp(ux, uy, uz)
-            r = _qmul(c[0], c[1], c[2], c[3], q[i, 0], q[i, 1], q[i, 2], q[i, 3])
+            c = quat_exp(ux, uy, uz)
+            r = quat_multiply(c[0], c[1], c[2], c[3], q[i, 0], q[i, 1], q[i, 2], q[i, 3])
             norm = math.sqrt(r[0] ** 2 + r[1] ** 2 + r[2] ** 2 + r[3] ** 2)
             for m in range(4):
                 qs[i, m] = r[m] / norm

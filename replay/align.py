@@ -45,6 +45,20 @@ def reference_at(ref: Reference, t: np.ndarray, method: str = "slerp",
     return out
 
 
+def earlier_on_grid(q: np.ndarray, rate_hz: float, seconds: float) -> np.ndarray:
+    """(N, 4) attitudes sampled at ``rate_hz``, each replaced by the attitude ``seconds``
+    earlier (slerped between samples; NaN where that is before the first sample): a
+    reference moved on its own clock, to see how much of a score is the timing between
+    two recording systems."""
+    shift = seconds * rate_hz
+    whole = int(np.floor(shift))
+    later = np.roll(q, whole, axis=0)
+    earlier = np.roll(q, whole + 1, axis=0)
+    out = Q.slerp(later, earlier, np.full(len(q), shift - whole))
+    out[: whole + 1] = np.nan
+    return out
+
+
 def angles_for_lag(q: np.ndarray) -> np.ndarray:
     """Roll, pitch and unwrapped yaw (rad) of a stack of attitudes; NaN rows stay NaN."""
     e = Q.to_euler(np.where(np.isfinite(q), q, 1.0))

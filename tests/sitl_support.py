@@ -191,11 +191,9 @@ def check_live_session_matches_replay(vehicle: dict, replayed: dict) -> None:
     replay's error in a PX4 flight).
 
     The samples: live counts truth samples the estimate reaches, the replay the recorded
-    IMU samples the truth reaches; one per IMU sample on a clean link. The record keeps
-    every message received, so a sample the live bridge dropped (its clock's duplicates,
-    jumps and reorders, counted in ``drops``) is scored by the replay only, and a message
-    lost on the way (``link.lost``, from the sequence numbers) leaves one count short on
-    one side: those counts, each once, are the only difference allowed beyond 5.
+    IMU samples the truth reaches; one per IMU sample on a clean link. A failure shows
+    the bridge's counters beside them (samples its clock dropped, messages lost on the
+    link, restarts): a CI run once failed the count and left no record to tell why.
 
     Inclination only: the heading follows the declination, which the live bridge learns
     from the autopilot during the session and the replay takes, last reported, for all
@@ -206,11 +204,9 @@ def check_live_session_matches_replay(vehicle: dict, replayed: dict) -> None:
     ``bridge.estimate.compare.pairs_at_shift``; the same flight's record re-scored: 0.516
     nearest, 0.489 interpolated, against the replay's 0.489)."""
     live = vehicle["session_vs_truth"]
-    counted = sum(vehicle["drops"].values()) + vehicle["link"]["lost"]
     why = {"live": live["eskf"], "replayed": replayed["eskf"], "drops": vehicle["drops"],
            "link": vehicle["link"], "flags": vehicle["flags"], "restarts": vehicle["restarts"]}
-    assert live["eskf"]["samples"] == pytest.approx(replayed["eskf"].samples,
-                                                    abs=5 + counted), why
+    assert live["eskf"]["samples"] == pytest.approx(replayed["eskf"].samples, abs=5), why
     assert live["eskf"]["inclination_deg"] == pytest.approx(
         replayed["eskf"].inclination_deg, rel=0.03), (live, replayed)
     assert live["(vehicle own)"]["inclination_deg"] == pytest.approx(

@@ -19,6 +19,7 @@ from bridge.app.cli import main
 from estimators import quat as Q
 from estimators.metrics import rms_errors
 from replay import load
+from replay.align import earlier_on_grid
 from replay.evaluate import aiding_kwargs, evaluate, flight_kwargs, prepare
 
 #: (flight, smoothed total, smoothed inclination) measured with the defaults [deg]
@@ -83,13 +84,8 @@ def test_broad_smoothed_beats_online_inclination(data_dir):
 def _inclination_against_earlier_truth(q: np.ndarray, q_ref: np.ndarray, scored: np.ndarray,
                                        rate_hz: float, ms: float) -> float:
     """RMS inclination [deg] against the reference taken ``ms`` earlier (slerped)."""
-    shift = ms / 1000.0 * rate_hz
-    whole = int(np.floor(shift))
-    earlier = Q.slerp(np.roll(q_ref, whole, axis=0), np.roll(q_ref, whole + 1, axis=0),
-                      np.full(len(q_ref), shift - whole))
-    ok = scored.copy()
-    ok[: whole + 1] = False
-    ok &= np.all(np.isfinite(earlier), axis=1) & np.all(np.isfinite(q), axis=1)
+    earlier = earlier_on_grid(q_ref, rate_hz, ms / 1000.0)
+    ok = scored & np.all(np.isfinite(earlier), axis=1) & np.all(np.isfinite(q), axis=1)
     return rms_errors(q[ok], earlier[ok]).inclination_deg
 
 

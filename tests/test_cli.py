@@ -4,6 +4,7 @@ and the environment; degrees at the user surface."""
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import signal
@@ -356,12 +357,51 @@ def test_a_status_file_that_is_not_a_regular_file_is_refused(tmp_path, capsys):
     assert fifo.is_fifo()
 
 
+def test_each_command_is_registered_by_the_module_the_table_names():
+    """``SUBCOMMANDS`` says which module to import for a command: it must be the one
+    that registers it, and every command must be in it (else it is missing from
+    ``--help``), in the order ``--help`` lists them."""
+    import argparse
+    import importlib
+
+    from bridge.app.cli import SUBCOMMANDS, build_parser
+
+    registered = {}
+    for module in dict.fromkeys(SUBCOMMANDS.values()):
+        sub = argparse.ArgumentParser().add_subparsers()
+        importlib.import_module(module).register(sub)
+        registered.update(dict.fromkeys(sub.choices, module))
+    assert registered == SUBCOMMANDS
+    assert list(build_parser()._subparsers._group_actions[0].choices) == list(SUBCOMMANDS)
+    for command, module in SUBCOMMANDS.items():
+        only = build_parser(command)._subparsers._group_actions[0].choices
+        assert command in only and set(only) <= {c for c, m in SUBCOMMANDS.items()
+                                                  if m == module}
+
+
+def test_health_check_loads_no_estimator_or_mavlink_code(tmp_path):
+    """The container runs ``health`` every 30 s beside the bridge: it reads one JSON
+    file, and must not import numpy, numba, pymavlink or the estimators to do it (most
+    of a second of CPU each time when every command's module was imported)."""
+    status = tmp_path / "status.json"
+    status.write_text(json.dumps({"time_unix": time.time(), "vehicles": {}}))
+    probe = ("import sys\n"
+             "from bridge.app.cli import main\n"
+             f"code = main(['health', '--status-file', {str(status)!r}])\n"
+             "heavy = [m for m in ('numpy', 'numba', 'pymavlink', 'estimators')"
+             " if m in sys.modules]\n"
+             "print(code, heavy)\n")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         timeout=60)
+    assert out.stdout.splitlines()[-1] == "0 []", out.stdout + out.stderr
+
+
 def test_ctrl_c_while_the_commands_import_is_one_line(monkeypatch, capsys):
     """Ctrl-C in the first fraction of a second (the commands' modules importing) gave
     a traceback: it is 'interrupted' and exit 130 like any other moment."""
     import bridge.app.cli as cli
 
-    def interrupted():
+    def interrupted(command=None):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(cli, "build_parser", interrupted)

@@ -22,16 +22,22 @@ import sys
 from collections.abc import Sequence
 from typing import NoReturn
 
-# Modules providing sub-commands, in the order `--help` lists them.
-SUBCOMMAND_MODULES: tuple[str, ...] = (
-    "estimators.cli",
-    "hil.cli",
-    "bridge.app.run_cli",
-    "bridge.app.calibrate_cli",
-    "replay.cli",
-    "bridge.app.warmup",
-    "bridge.app.health",
-)
+#: Each sub-command and the module that registers it, in the order `--help` lists them.
+#: Only the module of the command given is imported: all of them load numpy, numba,
+#: pymavlink and every estimator, most of a second of CPU, which ``health`` (the
+#: container's HEALTHCHECK, every 30 s, on the companion computer that also runs the
+#: bridge) paid each time to read one JSON file.
+SUBCOMMANDS: dict[str, str] = {
+    "estimators": "estimators.cli",
+    "hil": "hil.cli",
+    "run": "bridge.app.run_cli",
+    "demo": "bridge.app.run_cli",
+    "calibrate": "bridge.app.calibrate_cli",
+    "replay": "replay.cli",
+    "tune": "replay.cli",
+    "warmup": "bridge.app.warmup",
+    "health": "bridge.app.health",
+}
 
 EXIT_USAGE = 2  # bad input: the user can fix it (argparse uses 2 too)
 EXIT_BUG = 1
@@ -95,13 +101,23 @@ def seconds(text: str) -> float:
     return value
 
 
-def build_parser() -> argparse.ArgumentParser:
+def command_in(argv: Sequence[str]) -> str | None:
+    """The sub-command ``argv`` names: its first word that is not an option (the only
+    option before it, ``--version``, takes no value); None if there is none."""
+    return next((word for word in argv if not word.startswith("-")), None)
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser for ``command`` alone when it is one (see ``SUBCOMMANDS``), else for
+    every command (``--help``, ``--version``, a misspelt command's error)."""
     parser = OneLineParser(
         prog="attitude-bridge",
         description="MAVLink companion and HIL bridge for quadrotor attitude estimation.")
     parser.add_argument("--version", action=_Version)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in SUBCOMMAND_MODULES:
+    modules = ([SUBCOMMANDS[command]] if command in SUBCOMMANDS
+               else dict.fromkeys(SUBCOMMANDS.values()))
+    for module in modules:
         importlib.import_module(module).register(sub)
     return parser
 
@@ -116,8 +132,9 @@ def describe_error(exc: BaseException) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    try:  # imports every command's module: Ctrl-C can come this early
-        parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    try:  # imports the command's module: Ctrl-C can come this early
+        parser = build_parser(command_in(argv))
     except KeyboardInterrupt:
         print("attitude-bridge: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

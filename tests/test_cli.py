@@ -364,7 +364,7 @@ def test_each_command_is_registered_by_the_module_the_table_names():
     import argparse
     import importlib
 
-    from bridge.app.cli import SUBCOMMANDS, build_parser
+    from bridge.app.cli import SUBCOMMANDS, build_parser, command_in
 
     registered = {}
     for module in dict.fromkeys(SUBCOMMANDS.values()):
@@ -377,6 +377,9 @@ def test_each_command_is_registered_by_the_module_the_table_names():
         only = build_parser(command)._subparsers._group_actions[0].choices
         assert command in only and set(only) <= {c for c, m in SUBCOMMANDS.items()
                                                   if m == module}
+    # top-level help lists every command, whatever follows it
+    assert command_in(["replay", "x.tlog"]) == "replay"
+    assert command_in(["-h", "replay"]) is None and command_in([]) is None
 
 
 def test_health_check_loads_no_estimator_or_mavlink_code(tmp_path):

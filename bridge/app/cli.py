@@ -23,10 +23,9 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 #: Each sub-command and the module that registers it, in the order `--help` lists them.
-#: Only the module of the command given is imported: all of them load numpy, numba,
-#: pymavlink and every estimator, most of a second of CPU, which ``health`` (the
-#: container's HEALTHCHECK, every 30 s, on the companion computer that also runs the
-#: bridge) paid each time to read one JSON file.
+#: Only the module of the command given is imported: together they load numpy, numba,
+#: pymavlink and every estimator (most of a second of CPU), which ``health``, the
+#: container's HEALTHCHECK run every 30 s beside the bridge, does not need.
 SUBCOMMANDS: dict[str, str] = {
     "estimators": "estimators.cli",
     "hil": "hil.cli",
@@ -102,9 +101,9 @@ def seconds(text: str) -> float:
 
 
 def command_in(argv: Sequence[str]) -> str | None:
-    """The sub-command ``argv`` names: its first word that is not an option (the only
-    option before it, ``--version``, takes no value); None if there is none."""
-    return next((word for word in argv if not word.startswith("-")), None)
+    """The sub-command ``argv`` starts with; None when it starts with an option (``-h``
+    and ``--version`` answer for every command, ``-h run`` included)."""
+    return argv[0] if argv and not argv[0].startswith("-") else None
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:

@@ -154,6 +154,13 @@ def quat_multiply(a0: float, a1: float, a2: float, a3: float, b0: float, b1: flo
 
 
 @kernel(inline="always")
+def quat_normalized(w: float, x: float, y: float, z: float) -> tuple:
+    """The quaternion (w, x, y, z) scaled to unit norm."""
+    norm = math.sqrt(w * w + x * x + y * y + z * z)
+    return w / norm, x / norm, y / norm, z / norm
+
+
+@kernel(inline="always")
 def quat_exp(x: float, y: float, z: float) -> tuple:
     """Quaternion of the rotation vector (x, y, z) [rad] (the compiled kernels' form of
     ``estimators.quat.from_rotvec``)."""

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from ._core import kernel, quat_exp, quat_multiply
+from ._core import kernel, quat_exp, quat_multiply, quat_normalized
 
 
 @kernel
@@ -44,8 +44,7 @@ def _rms_at_shifts(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
             bw, bx, by, bz = q_est[i + 1, 0], q_est[i + 1, 1], q_est[i + 1, 2], q_est[i + 1, 3]
             # step = a* ⊗ b, sign-fixed, normalised
             sw, sx, sy, sz = quat_multiply(aw, -ax, -ay, -az, bw, bx, by, bz)
-            norm = math.sqrt(sw * sw + sx * sx + sy * sy + sz * sz)
-            sw, sx, sy, sz = sw / norm, sx / norm, sy / norm, sz / norm
+            sw, sx, sy, sz = quat_normalized(sw, sx, sy, sz)
             if sw < 0.0:
                 sw, sx, sy, sz = -sw, -sx, -sy, -sz
             # its rotation vector, scaled by frac, back to a quaternion d
@@ -54,13 +53,11 @@ def _rms_at_shifts(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
             dw, dx, dy, dz = quat_exp(frac * scale * sx, frac * scale * sy, frac * scale * sz)
             # estimate e = a ⊗ d, normalised
             ew, ex, ey, ez = quat_multiply(aw, ax, ay, az, dw, dx, dy, dz)
-            norm = math.sqrt(ew * ew + ex * ex + ey * ey + ez * ez)
-            ew, ex, ey, ez = ew / norm, ex / norm, ey / norm, ez / norm
+            ew, ex, ey, ez = quat_normalized(ew, ex, ey, ez)
             # error e ⊗ r*, r normalised
-            cw, cx, cy, cz = q_ref[k, 0], q_ref[k, 1], q_ref[k, 2], q_ref[k, 3]
-            norm = math.sqrt(cw * cw + cx * cx + cy * cy + cz * cz)
-            cw, cx, cy, cz = cw / norm, -cx / norm, -cy / norm, -cz / norm
-            fw, fx, fy, fz = quat_multiply(ew, ex, ey, ez, cw, cx, cy, cz)
+            cw, cx, cy, cz = quat_normalized(q_ref[k, 0], q_ref[k, 1], q_ref[k, 2],
+                                             q_ref[k, 3])
+            fw, fx, fy, fz = quat_multiply(ew, ex, ey, ez, cw, -cx, -cy, -cz)
             err = 2.0 * math.atan2(math.sqrt(fx * fx + fy * fy + fz * fz), abs(fw))
             total += err * err
             pairs += 1

@@ -173,9 +173,9 @@ def _backward(tap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # e_j = (x̂_j⁺ ⊕ δˢ_j) ⊖ x̂_j⁻
         qs = quat_exp(d[j, 0], d[j, 1], d[j, 2])
         qs = quat_multiply(qs[0], qs[1], qs[2], qs[3], tap[j, post], tap[j, post + 1],
-                   tap[j, post + 2], tap[j, post + 3])
+                           tap[j, post + 2], tap[j, post + 3])
         dq = quat_multiply(qs[0], qs[1], qs[2], qs[3], tap[j, pri], -tap[j, pri + 1],
-                   -tap[j, pri + 2], -tap[j, pri + 3])
+                           -tap[j, pri + 2], -tap[j, pri + 3])
         sgn = 1.0 if dq[0] >= 0.0 else -1.0
         vn = math.sqrt(dq[1] ** 2 + dq[2] ** 2 + dq[3] ** 2)
         scale = 2.0 * math.atan2(vn, sgn * dq[0]) / vn * sgn if vn > 1e-12 else 2.0 * sgn

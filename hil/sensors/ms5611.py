@@ -74,8 +74,12 @@ class Compensated:
 def compensate(c: tuple[int, ...], d1: int, d2: int, second_order: bool = True) -> Compensated:
     """Datasheet compensation (figure "pressure and temperature calculation")."""
     temp, off, sens = _terms(c, int(d2), second_order)
-    pressure = (((int(d1) * sens) >> 21) - off) >> 15
-    return Compensated(temp_cdeg=temp, pressure_pa=pressure)
+    return Compensated(temp_cdeg=temp, pressure_pa=_pressure(int(d1), off, sens))
+
+
+def _pressure(d1: int, off: int, sens: int) -> int:
+    """P [Pa] from the pressure word D1 and the temperature's OFF and SENS."""
+    return (((d1 * sens) >> 21) - off) >> 15
 
 
 def _terms(c: tuple[int, ...], d2: int, second_order: bool = True) -> tuple[int, int, int]:
@@ -120,7 +124,7 @@ def raw_from_true(c: tuple[int, ...], pressure_pa: float, temp_c: float) -> tupl
     d2 = _nearest(temp_of, target_t, _clip(guess))
     _, off, sens = _terms(c, d2)
     guess_1 = ((pressure_pa * (1 << 15)) + off) * (1 << 21) / max(sens, 1)
-    d1 = _nearest(lambda x: (((x * sens) >> 21) - off) >> 15, pressure_pa, _clip(guess_1))
+    d1 = _nearest(lambda x: _pressure(x, off, sens), pressure_pa, _clip(guess_1))
     return d1, d2
 
 

@@ -47,22 +47,25 @@ from hil.sitl_pilot import (
     px4_takeoff,
     set_rates,
 )
+from imu.px4_mag import CALIBRATION_PARAMS
 
 REPO = Path(__file__).resolve().parents[1]
 
 # Message -> requested rate (Hz). The keys are also the only messages written to the tlog,
-# plus COMMAND_ACK, STATUSTEXT (as they come) and the COMMAND_LONGs this script sends.
+# plus COMMAND_ACK, STATUSTEXT (as they come), the COMMAND_LONGs this script sends and
+# the PARAM_VALUEs it asks for.
 PX4_RATES = {
     "HIGHRES_IMU": 400.0, "HIL_STATE_QUATERNION": 200.0, "ATTITUDE_QUATERNION": 200.0,
     "ATTITUDE": 50.0, "LOCAL_POSITION_NED": 50.0, "GLOBAL_POSITION_INT": 50.0,
     "GPS_RAW_INT": 10.0, "EXTENDED_SYS_STATE": 10.0, "SYSTEM_TIME": 1.0, "HEARTBEAT": 1.0,
+    "SCALED_IMU": 50.0,  # the raw magnetometer, without PX4's bias estimate (imu.px4_mag)
 }
 AP_RATES = {
     "RAW_IMU": 333.0, "SIMSTATE": 100.0, "ATTITUDE": 100.0, "LOCAL_POSITION_NED": 50.0,
     "GLOBAL_POSITION_INT": 10.0, "GPS_RAW_INT": 10.0, "EXTENDED_SYS_STATE": 10.0,
     "SYSTEM_TIME": 1.0, "HEARTBEAT": 1.0,
 }
-ALWAYS = {"COMMAND_ACK", "STATUSTEXT", "COMMAND_LONG"}
+ALWAYS = {"COMMAND_ACK", "STATUSTEXT", "COMMAND_LONG", "PARAM_VALUE"}
 
 
 @dataclass(frozen=True)
@@ -133,6 +136,10 @@ def record(flight: Flight, out: Path, px4_instance: int, ap_ports: tuple[int, in
         set_rates(link, rates)
         ready(link)
         link.record(path)
+        if flight.autopilot == "px4":  # whether PX4 calibrates its raw magnetometer
+            for name in CALIBRATION_PARAMS:
+                link.send(link.conn.mav.param_request_read_encode(
+                    link.sysid, link.compid, name.encode(), -1))
         log(f"[{flight.name}] recording {path}; {flight.ground_before:g} s on the ground")
         time.sleep(flight.ground_before)
         for i, sortie in enumerate(flight.sorties, 1):

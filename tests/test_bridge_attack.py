@@ -511,8 +511,10 @@ def imu_si(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 async def test_message_types_have_their_own_clocks_and_the_requested_one_wins():
     """SCALED_IMU (ms) streams first, then HIGHRES_IMU (µs) starts: the HIGHRES stream is
     not judged by the SCALED clock (it used to be dropped entirely) and, being the
-    requested type, becomes the primary; a stream with µs in its ms field is never
-    published (its stamps run 1000× faster than real time)."""
+    requested type, becomes the primary; a PX4's SCALED_IMU then gives only its raw
+    magnetometer (imu.px4_mag: not used here, PX4's calibration parameters never came);
+    a stream with µs in its ms field is never published (its stamps run 1000× faster
+    than real time)."""
     q = euler_q(8.0, -4.0, 25.0)
     acc, mag = imu_si(q)
     acc_mg, mag_mg = (acc / 9.80665e-3).round().astype(int), (mag * 1e3).round().astype(int)
@@ -533,7 +535,9 @@ async def test_message_types_have_their_own_clocks_and_the_requested_one_wins():
         bridge.publish_status()
         first = bridge.last_status[1]
     assert first["primary"]["message"] == "HIGHRES_IMU"
-    assert first["source_switches"] == 1 and first["refused"]["not_primary"] == 300
+    assert first["source_switches"] == 1 and first["refused"]["not_primary"] == 0
+    mag = first["px4_magnetometer"]
+    assert mag["raw_readings"] == 300 and mag["state"] == "waiting" and mag["replaced"] == 0
     msgs = vehicle.listener.of_type("ATTITUDE_QUATERNION")
     assert len(msgs) == 900  # 300 SCALED, then every HIGHRES sample
     assert angle_deg(attitude_of(msgs[5:]), q).max() < 1.0

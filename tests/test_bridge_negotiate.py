@@ -59,12 +59,14 @@ async def test_px4_ends_on_highres_imu_at_the_asked_rate_without_a_flag(caplog):
     # The velocity streams were asked for too, after the IMU, and accepted.
     assert stream["aiding_streams"] == {"LOCAL_POSITION_NED": "MAV_RESULT_ACCEPTED",
                                         "GPS_RAW_INT": "MAV_RESULT_ACCEPTED"}
-    # IMU, two velocity streams, the landed state (EXTENDED_SYS_STATE) and the two
-    # references of the live comparison (its own attitude, the simulator's truth)
+    # IMU, two velocity streams, the landed state (EXTENDED_SYS_STATE), the two
+    # references of the live comparison (its own attitude, the simulator's truth) and
+    # the raw magnetometer (SCALED_IMU, without PX4's bias estimate: imu.px4_mag)
     assert stream["flight_state_stream"] == "MAV_RESULT_ACCEPTED"
     assert stream["reference_streams"] == {"ATTITUDE_QUATERNION": "MAV_RESULT_ACCEPTED",
                                            "HIL_STATE_QUATERNION": "MAV_RESULT_ACCEPTED"}
-    assert stats.requests.interval_accepted == 6 and stats.requests.interval_refused == 0
+    assert stream["raw_mag_stream"] == "MAV_RESULT_ACCEPTED"
+    assert stats.requests.interval_accepted == 7 and stats.requests.interval_refused == 0
     # The emulator really streamed at 250 Hz after the request (50 Hz before it).
     assert stats.messages["HIGHRES_IMU"] > 0.8 * IMU_RATE * 6.0
 

@@ -43,7 +43,8 @@ class StreamRequester:
         if req is not None:
             self._send_interval(vehicle, req)
         for name in (vehicle.declination.param_to_send(now),
-                     vehicle.imu_delay.param_to_send(now)):
+                     vehicle.imu_delay.param_to_send(now),
+                     vehicle.px4_mag.param_to_send(now)):
             if name is None:
                 continue
             read = mavlink.MAVLink_param_request_read_message(

@@ -140,8 +140,8 @@ class MessageRouter:
             self._position(vehicle, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
 
     def _param(self, vehicle: Vehicle, msg: MAVLinkMessage) -> None:
-        """A parameter of the autopilot: its declination or gyro filter, when it is the
-        one asked."""
+        """A parameter of the autopilot: its declination, gyro filter or magnetometer
+        calibration, when it is one asked."""
         name = msg.param_id if isinstance(msg.param_id, str) else \
             msg.param_id.decode(errors="replace")
         name, value = name.rstrip("\x00"), float(msg.param_value)
@@ -149,6 +149,7 @@ class MessageRouter:
             self.pipeline.configure(vehicle.sysid, declination_rad=vehicle.declination.rad)
         if vehicle.imu_delay.on_param(name, value):
             self.pipeline.configure(vehicle.sysid, imu_delay_s=vehicle.imu_delay.seconds)
+        vehicle.px4_mag.on_param(name, value)
 
     def _truth(self, vehicle: Vehicle, msg: MAVLinkMessage, compid: int,
                arrival: float) -> None:
@@ -249,6 +250,7 @@ class MessageRouter:
         vehicle.negotiation.start(autopilot)
         vehicle.declination.plan(autopilot)
         self._plan_imu_delay(vehicle, autopilot)
+        vehicle.px4_mag.plan(autopilot)
 
     def _plan_imu_delay(self, vehicle: Vehicle, autopilot: int) -> None:
         """The autopilot's default IMU delay now, its parameter asked for."""

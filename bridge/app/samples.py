@@ -12,17 +12,22 @@ from __future__ import annotations
 
 import logging
 
+from imu.px4_mag import CALIBRATED, RAW
+
 from ..estimate.pipeline import Pipeline
 from ..publish.estimates import EstimatePublisher
 from ..publish.output import AttitudeOutput
+from ..vehicle.imu_sample import ID_HIGHRES_IMU, ID_SCALED_IMU
 from ..vehicle.ingest import ImuSample, Ingest, SourceKey
 from ..vehicle.vehicle import Vehicle
 from ..wire.links import Link
-from ..wire.mav import MAVLinkMessage
+from ..wire.mav import MAVLinkMessage, mavlink
 from .config import BridgeConfig
 from .registry import STREAM_SILENCE_S
 
 log = logging.getLogger(__name__)
+
+PX4 = mavlink.MAV_AUTOPILOT_PX4
 
 
 class SampleFlow:
@@ -47,6 +52,8 @@ class SampleFlow:
         """One IMU message of ``vehicle`` (``arrival``: perf_counter, ``now``: monotonic)."""
         key = self.ingest.key_of(msg)
         assert key is not None
+        if self._raw_magnetometer(vehicle, key, msg, arrival, now):
+            return
         old = vehicle.primary
         use, new = vehicle.choose_source(key, now, self.cfg.imu_id,
                                          vehicle.negotiation.preferred_id,
@@ -70,8 +77,41 @@ class SampleFlow:
         vehicle.request_backoff = STREAM_SILENCE_S
         if vehicle.autopilot_compid is None or key.compid == vehicle.autopilot_compid:
             vehicle.link, vehicle.address = link, link.last_addr
+        px4_highres = key.msg == ID_HIGHRES_IMU and vehicle.autopilot == PX4
         for sample in samples:
+            if px4_highres:
+                self._px4_field(vehicle, sample)
             self._estimate(vehicle, sample)
+
+    def _raw_magnetometer(self, vehicle: Vehicle, key: SourceKey, msg: MAVLinkMessage,
+                          arrival: float, now: float) -> bool:
+        """A PX4's SCALED_IMU while its HIGHRES_IMU is the primary: only its raw field
+        is wanted (imu.px4_mag). True when the message was taken for that."""
+        primary = vehicle.primary
+        if (vehicle.autopilot != PX4 or key.msg != ID_SCALED_IMU or primary is None
+                or primary.msg != ID_HIGHRES_IMU or key.compid != primary.compid
+                or now - vehicle.primary_heard > self.cfg.source_timeout_s):
+            return False
+        mag = self.ingest.scaled_mag(msg)
+        if mag is not None:
+            vehicle.px4_mag.chooser.offer_raw(mag, arrival)
+        return True
+
+    @staticmethod
+    def _px4_field(vehicle: Vehicle, sample: ImuSample) -> None:
+        """HIGHRES_IMU's field, or the raw one where that is PX4's calibrated field."""
+        chooser = vehicle.px4_mag.chooser
+        before = chooser.state
+        sample.mag = chooser.choose(sample.mag, sample.arrival)
+        if chooser.state == before:
+            return
+        if chooser.state == RAW:
+            log.info("vehicle %d: %s", vehicle.sysid, chooser.describe())
+        elif chooser.state == CALIBRATED and before == RAW:
+            log.warning("vehicle %d: its raw magnetometer no longer agrees with the "
+                        "calibrated one; %s from now on", vehicle.sysid, chooser.describe())
+        elif chooser.state == CALIBRATED:
+            log.info("vehicle %d: %s", vehicle.sysid, chooser.describe())
 
     def _estimate(self, vehicle: Vehicle, sample: ImuSample) -> None:
         vehicle.negotiation.observe(sample.key.msg, sample.t)
@@ -81,6 +121,7 @@ class SampleFlow:
         vehicle.arrival_clock.observe(sample.t, sample.arrival)
         if sample.restart == "reboot":
             vehicle.refs = None  # the references' clock restarted too
+            vehicle.px4_mag.plan(vehicle.autopilot)  # its calibration may have changed
             if vehicle.autopilot is not None:
                 # a rebooted autopilot has forgotten every interval it was asked for
                 log.info("vehicle %d: asking again for its streams", vehicle.sysid)

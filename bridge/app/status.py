@@ -134,6 +134,8 @@ class StatusReporter:
             "imu_stream": vehicle.negotiation.status(),
             "board": self.ingest.board_of(vehicle.sysid).name,
             "declination": vehicle.declination.status(),
+            "px4_magnetometer": (vehicle.px4_mag.status()
+                                 if vehicle.autopilot == mavlink.MAV_AUTOPILOT_PX4 else None),
             "imu_delay": vehicle.imu_delay.status(),
             "vehicle": self._vehicle_description(vehicle),
             "aiding": {**vehicle.aiding.status(), "enabled": self.cfg.aiding,

@@ -228,6 +228,17 @@ class Ingest:
             return self._highres_imu(msg, key, now)
         return self._scaled_imu(msg, key, now)
 
+    def scaled_mag(self, msg: MAVLinkMessage) -> np.ndarray | None:
+        """A SCALED_IMU message's field alone, in gauss, FRD, mounted and calibrated as
+        its IMU samples would be (None: it carries none). For a PX4's raw magnetometer
+        beside HIGHRES_IMU (:mod:`imu.px4_mag`): the message's IMU part is not used."""
+        mg = (msg.xmag, msg.ymag, msg.zmag)
+        if mg == (0, 0, 0):
+            return None
+        if msg.get_srcSystem() in self._scaled_truncated:
+            mg = _half_step_out(mg)
+        return self._scaled_mag @ (mg + _ONE)
+
     # --- per message type ------------------------------------------------------------
     def _raw_imu(self, m: MAVLinkMessage, key: SourceKey, arrival: float) -> list[ImuSample]:
         src = self._source(key, 1e-6, C.WRAP_32)

@@ -77,6 +77,10 @@ REFERENCE_STREAMS = {
     ARDUPILOT: ("ATTITUDE_QUATERNION", "SIMSTATE"),
 }
 TRUTH_STREAMS = frozenset(("HIL_STATE_QUATERNION", "SIMSTATE"))
+#: PX4's raw magnetometer (SCALED_IMU: without PX4's bias estimate, which HIGHRES_IMU's
+#: has taken out; imu.px4_mag), asked beside HIGHRES_IMU at this rate [Hz]: SIH's
+#: simulated magnetometer reads at 50 Hz.
+RAW_MAG_STREAM, RAW_MAG_HZ = "SCALED_IMU", 50.0
 #: Autopilots whose DENIED answer to SET_MESSAGE_INTERVAL means "interval too short".
 DENIED_MEANS_TOO_FAST = frozenset((ARDUPILOT,))
 #: Lowest rate an IMU stream is asked at when stepping down after DENIED [Hz].
@@ -108,6 +112,8 @@ def _consequence(name: str) -> str:
         return ": no landed state, eskf decides from the data when the vehicle flies"
     if name in TRUTH_STREAMS:
         return ": no simulator truth (a real vehicle), compared with its own attitude only"
+    if name == RAW_MAG_STREAM:
+        return ": HIGHRES_IMU's magnetometer (PX4's bias estimate taken out) is used"
     if name == "ATTITUDE_QUATERNION":
         return ": compared with its ATTITUDE if it sends one"
     return ""
@@ -192,6 +198,7 @@ class StreamNegotiation:
     aiding_results: dict[str, str] = field(default_factory=dict)
     flight_state_result: str | None = None  # the EXTENDED_SYS_STATE request's answer
     reference_results: dict[str, str] = field(default_factory=dict)
+    raw_mag_result: str | None = None  # the raw magnetometer request's answer (PX4)
     imu_rate_hz: float | None = None  # rate the current IMU candidate is asked at
     commands_sent: int = 0
     acks: int = 0
@@ -312,6 +319,8 @@ class StreamNegotiation:
     def _other_result(self, name: str, result: str) -> None:
         if name == FLIGHT_STATE_STREAM:
             self.flight_state_result = result
+        elif name == RAW_MAG_STREAM:
+            self.raw_mag_result = result
         elif name in REFERENCE_STREAMS.get(self.autopilot, ()):
             self.reference_results[name] = result
         else:
@@ -331,6 +340,14 @@ class StreamNegotiation:
             self.queue.extend(Request(name, self.asked_hz if name in TRUTH_STREAMS
                                       else REFERENCE_HZ, imu=False)
                               for name in REFERENCE_STREAMS.get(self.autopilot, ()))
+            if self.wants_raw_mag:
+                self.queue.append(Request(RAW_MAG_STREAM, RAW_MAG_HZ, imu=False))
+
+    @property
+    def wants_raw_mag(self) -> bool:
+        """A PX4 settled on HIGHRES_IMU: its raw magnetometer is worth asking for."""
+        return (self.autopilot == PX4 and self.state == SETTLED
+                and self.message == "HIGHRES_IMU")
 
     # --- the achieved rate -----------------------------------------------------------
     def observe(self, msg_id: int, t: float) -> None:
@@ -426,4 +443,5 @@ class StreamNegotiation:
                 "commands": self.commands_sent, "acks": self.acks,
                 "aiding_streams": dict(self.aiding_results),
                 "flight_state_stream": self.flight_state_result,
-                "reference_streams": dict(self.reference_results)}
+                "reference_streams": dict(self.reference_results),
+                "raw_mag_stream": self.raw_mag_result}

@@ -21,7 +21,8 @@ injected by another sender must not decide what the bridge reports as its error.
 
 The object is also the home of the vehicle's other inputs: what its heartbeat says it
 is (autopilot, MAV_TYPE: the vehicle model), its velocity for aiding
-(:mod:`bridge.vehicle.aiding`).
+(:mod:`bridge.vehicle.aiding`), which magnetometer of a PX4 to use
+(:mod:`bridge.vehicle.magnetometer`).
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from .clock import ArrivalClock
 from .declination import Declination
 from .imu_delay import ImuDelay
 from .ingest import SourceKey
+from .magnetometer import Px4Magnetometer
 from .negotiate import StreamNegotiation
 from .references import References
 
@@ -89,6 +91,8 @@ class Vehicle:
     imu_delay: ImuDelay = field(default_factory=lambda: ImuDelay(0))
     negotiation: StreamNegotiation = field(  # the service gives each its settings
         default_factory=lambda: StreamNegotiation(0, 250.0))
+    #: a PX4's magnetometer: HIGHRES_IMU's, or the raw SCALED_IMU one (imu.px4_mag)
+    px4_mag: Px4Magnetometer = field(default_factory=lambda: Px4Magnetometer(0))
     #: armed / landed state from its own HEARTBEAT and EXTENDED_SYS_STATE (imu.flight_state)
     flight: FlightStateTracker = field(default_factory=FlightStateTracker)
     #: (board time of the last sample before it or None, airborne) of each switch given
@@ -104,6 +108,7 @@ class Vehicle:
     def __post_init__(self) -> None:
         self.flight.label = f"vehicle {self.sysid}"
         self.talks_from.label = f"vehicle {self.sysid}"
+        self.px4_mag.sysid = self.sysid
 
     def references(self) -> References:
         """The comparison references, created on first use (they are the bulk of the

@@ -41,7 +41,8 @@ def detect_format(path: Path) -> str:
 
 
 def load(path: str | Path, fmt: str | None = None, board: str | None = None,
-         imu: str | None = None, reference: str = "auto") -> Recording:
+         imu: str | None = None, reference: str = "auto", raw_mag: bool = True
+         ) -> Recording:
     """Read a log or dataset file into a :class:`Recording`.
 
     ``board`` names the RAW_IMU profile for tlogs (``imu.boards``; None: the one whose
@@ -49,7 +50,9 @@ def load(path: str | Path, fmt: str | None = None, board: str | None = None,
     IMU stream when a file has several (a tlog message name, or a ULog multi-instance
     ``sensor_combined`` is the only one). ``reference``: "auto" (truth when the file has
     it, else the autopilot's attitude), "truth" or "autopilot" (None when the file lacks
-    that kind; ``Recording.references`` lists those it has). Errors are
+    that kind; ``Recording.references`` lists those it has). ``raw_mag`` False: a PX4
+    tlog's HIGHRES_IMU field is kept even where its raw one would replace it
+    (:mod:`imu.px4_mag`). Errors are
     :class:`ReplayInputError` with the file name and what was expected.
     """
     p = Path(path)
@@ -61,5 +64,5 @@ def load(path: str | Path, fmt: str | None = None, board: str | None = None,
     if kind not in FORMATS:
         raise ReplayInputError(f"unknown format {kind!r}; valid: {sorted(FORMATS)}")
     if kind == "tlog":
-        return tlog.read(p, board=board, imu=imu, reference=reference)
+        return tlog.read(p, board=board, imu=imu, reference=reference, raw_mag=raw_mag)
     return FORMATS[kind](p, reference=reference)

@@ -61,13 +61,16 @@ GPS_FIX_3D = 3
 MAV_TYPE_GCS = 6
 MAV_AUTOPILOT_INVALID = 8
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+MAV_AUTOPILOT_PX4 = 12
 #: MAV_COMP_ID_ONBOARD_COMPUTER..4: companions (this bridge sends from 191). Their
 #: attitude in a record is a companion's estimate, never the autopilot's own.
 COMPANION_COMPONENTS = range(191, 195)
 
 
 def read(path: Path, board: str | None = None, imu: str | None = None,
-         reference: str = "auto") -> Recording:
+         reference: str = "auto", raw_mag: bool = True) -> Recording:
+    """``raw_mag``: a PX4 log's HIGHRES_IMU field may be replaced by SCALED_IMU's raw one
+    (:mod:`imu.px4_mag`, as the live bridge does); False keeps HIGHRES_IMU's."""
     if imu is not None and imu.upper() not in IMU_MESSAGES:
         raise ReplayInputError(f"unknown IMU message {imu!r}; valid: {list(IMU_MESSAGES)}")
     walk = _collect(path)
@@ -101,6 +104,11 @@ def read(path: Path, board: str | None = None, imu: str | None = None,
         notes.append(f"{imu_type} integers read as the middle of their step (ArduPilot "
                      f"truncates them toward zero)")
     t, gyr, acc, mag = _imu_arrays(imu_type, rows, profile_name, truncated)
+    if imu_type == "HIGHRES_IMU" and raw_mag and _is_px4(messages, src):
+        mag, mag_note = _px4_raw_mag(rows, messages.get("SCALED_IMU", []), src, mag,
+                                     _params(messages, src))
+        if mag_note:
+            notes.append(mag_note)
     if imu_type != "RAW_IMU" and (w := magnitude_warning(acc, imu_type)) is not None:
         warnings.append(w)
     keep, window, note = _longest_session(t, np.array([m._timestamp for m in rows]))
@@ -356,6 +364,43 @@ def _records_follow(data: bytes, k: int, checker: MAVLink) -> bool:
             return False
         k += 8 + frame[0]
     return True
+
+
+def _is_px4(messages: dict[str, list], src: tuple) -> bool:
+    return any(m.autopilot == MAV_AUTOPILOT_PX4
+               for m in _same_component(messages.get("HEARTBEAT", []), src))
+
+
+def _px4_raw_mag(rows: list, scaled: list, src: tuple, mag: np.ndarray,
+                 params: dict[str, float]) -> tuple[np.ndarray, str]:
+    """HIGHRES_IMU's fields with SCALED_IMU's raw one where :mod:`imu.px4_mag` takes it
+    (``params``: the log's parameters): every message of both in the order they were
+    recorded, as the live bridge met them."""
+    from imu.px4_mag import RawMagnetometer
+
+    scaled = [m for m in scaled if (m.get_srcSystem(), m.get_srcComponent()) == src]
+    if not scaled:
+        return mag, ""
+    chooser = RawMagnetometer()
+    chooser.set_parameters(params)
+    out = mag.copy()
+    events = sorted([(m._order, 0, m) for m in scaled] + [(m._order, 1, i)
+                                                          for i, m in enumerate(rows)],
+                    key=operator.itemgetter(0, 1))
+    for _, kind, item in events:
+        if kind == 0:
+            chooser.offer_raw(np.array([item.xmag, item.ymag, item.zmag], float) * 1e-3,
+                              item._timestamp)
+            continue
+        m = rows[item]
+        numbers = (m.xmag, m.ymag, m.zmag)
+        own = (np.array(numbers, float) if any(numbers) and all(map(math.isfinite, numbers))
+               else None)
+        chosen = chooser.choose(own, m._timestamp)
+        if chosen is not None and chosen is not own:
+            out[item] = chosen
+    return out, chooser.describe() + (f", {chooser.used} readings replaced"
+                                      if chooser.used else "")
 
 
 def _pick_imu(messages: dict[str, list], imu: str | None, path: Path,

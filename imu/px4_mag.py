@@ -111,8 +111,9 @@ class RawMagnetometer:
         """The field to use for a HIGHRES_IMU reading ``highres`` that arrived at
         ``arrival``: the latest raw one where that is the calibrated field and fresh,
         else ``highres``. None stays None (no field, or one judged disturbed). The
-        reading also goes into the comparison."""
-        if self.state == CALIBRATED or highres is None:
+        reading also goes into the comparison (only while the raw field may be taken:
+        the parameters say "uncalibrated"; every IMU sample comes through here)."""
+        if self.state == CALIBRATED or highres is None or not self.uncalibrated:
             return highres
         self._compare(highres, arrival)
         if self.state != RAW or arrival - self._latest_at > STALE_S:
@@ -125,7 +126,7 @@ class RawMagnetometer:
         if w.start is None:
             w.start = arrival
         w.highres = w.highres + highres
-        w.highres_norm += float(np.linalg.norm(highres))
+        w.highres_norm += math.sqrt(float(highres @ highres))
         w.n_highres += 1
         if arrival - w.start < WINDOW_S:
             return

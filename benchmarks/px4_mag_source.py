@@ -29,8 +29,7 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil
 
 from estimators import quat as Q
-
-HIGHRES_MAG_BITS = 0x1C0
+from replay.readers.tlog import HIGHRES_MAG_BITS
 
 
 def world_fields(path: Path, lag_s: float) -> dict[str, np.ndarray]:

@@ -101,8 +101,8 @@ class RawMagnetometer:
             return
         self.offered += 1
         self._latest, self._latest_at = mag, arrival
-        if self.state == CALIBRATED:
-            return
+        if self.state == CALIBRATED or not self.uncalibrated:
+            return  # compared only while the raw field may be taken (as in choose)
         w = self._window
         w.raw = w.raw + mag
         w.n_raw += 1

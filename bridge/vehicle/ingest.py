@@ -229,9 +229,9 @@ class Ingest:
         return self._scaled_imu(msg, key, now)
 
     def scaled_mag(self, msg: MAVLinkMessage) -> np.ndarray | None:
-        """A SCALED_IMU message's field alone, in gauss, FRD, mounted and calibrated as
-        its IMU samples would be (None: it carries none). For a PX4's raw magnetometer
-        beside HIGHRES_IMU (:mod:`imu.px4_mag`): the message's IMU part is not used."""
+        """A SCALED_IMU message's field in gauss, FRD, mounted and calibrated (None: it
+        carries none): part of every SCALED_IMU sample, and alone a PX4's raw
+        magnetometer beside HIGHRES_IMU (:mod:`imu.px4_mag`)."""
         mg = (msg.xmag, msg.ymag, msg.zmag)
         if mg == (0, 0, 0):
             return None
@@ -278,14 +278,13 @@ class Ingest:
         if max(map(abs, g)) > self._scaled_gyr_max or max(map(abs, a)) > self._scaled_acc_max:
             src.counts["implausible"] += 1
             return []
-        mg = (m.xmag, m.ymag, m.zmag)
         if key.sysid in self._scaled_truncated:
-            g_si, a_si, mg_si = _half_step_out(g), _half_step_out(a), _half_step_out(mg)
+            g_si, a_si = _half_step_out(g), _half_step_out(a)
         else:
-            g_si, a_si, mg_si = g, a, mg
+            g_si, a_si = g, a
         gyr = self._scaled_gyr @ (g_si + _ONE)
         acc = self._scaled_acc @ (a_si + _ONE)
-        mag = None if mg == (0, 0, 0) else self._scaled_mag @ (mg_si + _ONE)
+        mag = self.scaled_mag(m)
         return self._stamp(src, key, m.time_boot_ms, 1e-3,
                            _Pending(gyr, acc, mag, arrival, ()), g + a)
 

@@ -29,18 +29,41 @@ ZERO3 = np.zeros(3)
 ZERO3.setflags(write=False)
 
 
+def frame_ids(data: bytes) -> set[int] | None:
+    """The message ids of the MAVLink frames a datagram holds, read from their headers
+    alone; None when the bytes are not a clean run of frames (then only decoding tells)."""
+    ids: set[int] = set()
+    i, n = 0, len(data)
+    while i < n:
+        if data[i] == 0xFD and i + 10 <= n:  # MAVLink 2: 10-byte header, signature flag
+            size = 12 + data[i + 1] + (13 if data[i + 2] & 1 else 0)
+            ids.add(data[i + 7] | data[i + 8] << 8 | data[i + 9] << 16)
+        elif data[i] == 0xFE and i + 6 <= n:  # MAVLink 1: 6-byte header
+            size = 8 + data[i + 1]
+            ids.add(data[i + 5])
+        else:
+            return None
+        i += size
+    return ids if i == n else None
+
+
 @dataclass
 class UdpListener:
     """Collects every MAVLink message sent to its port (a stand-in GCS).
 
     Drains its socket completely on each wake-up (4 MB buffer), so a --fast emulator
-    in the same event loop cannot overflow it.
+    in the same event loop cannot overflow it. Datagrams are kept as they arrived and
+    decoded when a test looks (``of_type`` decodes only those whose frame headers name
+    the type): a listener that also receives an emulator's whole stream, for its truth,
+    would otherwise spend more CPU decoding IMU messages nobody reads than the bridge
+    spends on them.
     """
 
-    messages: list = field(default_factory=list)
     parser: mavlink.MAVLink = field(default_factory=lambda: mavlink.MAVLink(None, 255, 0))
     sock: socket.socket | None = None
     host: str = "127.0.0.1"  # any 127.x.y.z: another "machine" on the loopback network
+    _datagrams: list = field(default_factory=list)  # (arrival time, bytes)
+    _decoded: dict = field(default_factory=dict)  # datagram index -> its messages
 
     async def start(self) -> int:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -58,17 +81,29 @@ class UdpListener:
                 return
             except OSError:
                 continue
-            now = time.perf_counter()
+            self._datagrams.append((time.perf_counter(), data))
+
+    def _decode(self, index: int) -> list:
+        """The messages of one datagram (whole datagrams only: no half frame carries
+        over; corrupted ones, from the fault tests, give none)."""
+        if index not in self._decoded:
             try:
-                msgs = self.parser.parse_buffer(data) or []
-            except Exception:  # corrupted datagrams from the fault tests
+                msgs = self.parser.parse_buffer(self._datagrams[index][1]) or []
+            except Exception:
+                key = self.parser.signing.secret_key
                 self.parser = mavlink.MAVLink(None, 255, 0)
-                continue
-            self.parser.buf, self.parser.buf_index = bytearray(), 0  # whole datagrams only
+                self.parser.signing.secret_key = key
+                msgs = []
+            self.parser.buf, self.parser.buf_index = bytearray(), 0
             self.parser.expected_length = mavlink.HEADER_LEN_V1 + 2
-            for msg in msgs:
-                if not isinstance(msg, mavlink.MAVLink_bad_data):
-                    self.messages.append((now, msg))
+            self._decoded[index] = [m for m in msgs
+                                    if not isinstance(m, mavlink.MAVLink_bad_data)]
+        return self._decoded[index]
+
+    @property
+    def messages(self) -> list:
+        """Every message so far, in arrival order, as (arrival time, message)."""
+        return [(t, m) for k, (t, _) in enumerate(self._datagrams) for m in self._decode(k)]
 
     @property
     def port(self) -> int:
@@ -78,8 +113,14 @@ class UdpListener:
         self.sock.sendto(data, addr)
 
     def of_type(self, name: str, sysid: int | None = None) -> list:
-        return [m for _, m in self.messages if m.get_type() == name and
-                (sysid is None or m.get_srcSystem() == sysid)]
+        msgid = getattr(mavlink, f"MAVLINK_MSG_ID_{name}")
+        out = []
+        for k, (_, data) in enumerate(self._datagrams):
+            ids = frame_ids(data)
+            if ids is None or msgid in ids:
+                out += [m for m in self._decode(k) if m.get_type() == name and
+                        (sysid is None or m.get_srcSystem() == sysid)]
+        return out
 
     def close(self) -> None:
         if self.sock is not None:

@@ -22,7 +22,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .fastframe import decode_single_imu_frame
+from .fastframe import decode_single_frame
 from .mav import MAVLink, MAVLinkMessage, mavlink
 
 #: MAVLink signing timestamps count 10 µs units since 2015-01-01 00:00 UTC.
@@ -212,7 +212,7 @@ class MavCodec:
         """
         self.stats.bytes_in += len(data)
         if datagram and self.signing is None:
-            msg = decode_single_imu_frame(data)  # the common case, without the state machine
+            msg = decode_single_frame(data)  # the common case, without the state machine
             if msg is not None:
                 self.stats.messages_in += 1
                 return [msg]

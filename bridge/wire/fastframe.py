@@ -1,18 +1,21 @@
-"""A short path for the one packet the bridge gets a thousand times a second.
+"""A short path for the packets the bridge gets hundreds of times a second.
 
 A UDP datagram from a flight controller usually holds exactly one unsigned MAVLink 2
-frame, and at IMU rates almost all of them are RAW_IMU / SCALED_IMU* / HIGHRES_IMU.
-pymavlink's general parser spends ~10 µs on such a datagram (byte-stream state machine,
-then a decoder that handles arrays, strings, signing and MAVLink 1); most of that work
+frame, and at IMU rates almost all of them are RAW_IMU / SCALED_IMU* / HIGHRES_IMU, with
+a simulator's truth (HIL_STATE_QUATERNION, SIMSTATE) or the autopilot's own attitude
+(ATTITUDE_QUATERNION, ATTITUDE) as often beside them. pymavlink's general parser spends
+~10 µs on such a datagram (byte-stream state machine, then a decoder that handles
+strings, signing and MAVLink 1 and works out each array's place anew); most of that work
 does not apply to these messages, and at 30 k samples/s it is a third of the budget.
 
-:func:`decode_single_imu_frame` handles only that common case and uses pymavlink's own
-definitions for everything it knows (payload layout, CRC_EXTRA, message classes), so it
-cannot drift from the dialect; checksums come from ``fastcrc`` (pymavlink's own CRC
-backend). Anything else — another message, MAVLink 1, a signed frame, several frames,
-a bad checksum, a wrong length — returns None and goes the general way, where it is
-parsed or counted as before. The result is the same message object pymavlink builds,
-with the same header, so nothing downstream can tell the difference (tested).
+:func:`decode_single_frame` handles only that common case and uses pymavlink's own
+definitions for everything it knows (payload layout, field order, array lengths,
+CRC_EXTRA, message classes), so it cannot drift from the dialect; checksums come from
+``fastcrc`` (pymavlink's own CRC backend). Anything else — another message, MAVLink 1, a
+signed frame, several frames, a bad checksum, a wrong length — returns None and goes the
+general way, where it is parsed or counted as before. The result is the same message
+object pymavlink builds, with the same header, so nothing downstream can tell the
+difference (tested).
 """
 
 from __future__ import annotations
@@ -38,27 +41,34 @@ class _FrameType:
     crc_extra: bytes  # one byte, appended to the checksummed bytes
     payload_size: int  # full (untruncated) payload length
     unpack: Callable[[bytes], tuple]  # struct.Struct.unpack of the payload
+    #: per constructor argument, (first wire value, count): None when the wire holds the
+    #: arguments as they stand (declaration order, no arrays)
+    fields: tuple[tuple[int, int], ...] | None
 
 
 def _frame_type(cls: type) -> _FrameType:
-    # Only messages whose fields go on the wire in declaration order and hold no arrays:
-    # then the unpacked tuple is the constructor's argument list as it stands.
-    assert list(cls.orders) == list(range(len(cls.orders))), cls.msgname
-    assert all(n == 1 for n in cls.lengths), cls.msgname
+    # The wire sorts fields by size; ``orders[i]`` is declared field i's place there and
+    # ``lengths`` the wire fields' element counts (pymavlink's own decode reads them so).
+    assert not any(t == "char" for t in cls.fieldtypes), cls.msgname  # no strings here
+    fields = None
+    if list(cls.orders) != list(range(len(cls.orders))) or any(n != 1 for n in cls.lengths):
+        fields = tuple((sum(cls.lengths[:order]), cls.lengths[order]) for order in cls.orders)
     return _FrameType(cls, cls.id, bytes((cls.crc_extra,)), cls.unpacker.size,
-                      cls.unpacker.unpack)
+                      cls.unpacker.unpack, fields)
 
 
 _FAST_TYPES: dict[int, _FrameType] = {
     t.msg_id: t for t in map(_frame_type, (
         mavlink.MAVLink_raw_imu_message, mavlink.MAVLink_scaled_imu_message,
         mavlink.MAVLink_scaled_imu2_message, mavlink.MAVLink_scaled_imu3_message,
-        mavlink.MAVLink_highres_imu_message))}
+        mavlink.MAVLink_highres_imu_message, mavlink.MAVLink_hil_state_quaternion_message,
+        mavlink.MAVLink_simstate_message, mavlink.MAVLink_attitude_quaternion_message,
+        mavlink.MAVLink_attitude_message))}
 
 
-def decode_single_imu_frame(data: bytes) -> MAVLinkMessage | None:
-    """The IMU message if ``data`` is exactly one valid unsigned MAVLink 2 IMU frame,
-    else None (the caller then uses the general parser)."""
+def decode_single_frame(data: bytes) -> MAVLinkMessage | None:
+    """The message if ``data`` is exactly one valid unsigned MAVLink 2 frame of a type
+    above, else None (the caller then uses the general parser)."""
     n = len(data)
     if n < HEADER_LEN + CHECKSUM_LEN or data[0] != MAGIC_V2 or data[2] != 0:
         return None  # not MAVLink 2, or signed / unknown incompat flags
@@ -74,7 +84,11 @@ def decode_single_imu_frame(data: bytes) -> MAVLinkMessage | None:
     payload = data[HEADER_LEN:-2]
     if payload_len < ftype.payload_size:  # MAVLink 2 trims trailing zero bytes
         payload += bytes(ftype.payload_size - payload_len)
-    msg = ftype.cls(*ftype.unpack(payload))
+    values = ftype.unpack(payload)
+    if ftype.fields is not None:
+        values = [values[first] if count == 1 else list(values[first:first + count])
+                  for first, count in ftype.fields]
+    msg = ftype.cls(*values)
     msg._header = mavlink.MAVLink_header(ftype.msg_id, 0, data[3], payload_len, data[4],
                                          data[5], data[6])
     msg._payload = payload

@@ -197,8 +197,11 @@ def check_live_session_matches_replay(vehicle: dict, replayed: dict) -> None:
 
     Inclination only: the heading follows the declination, which the live bridge learns
     from the autopilot during the session and the replay takes, last reported, for all
-    of it (PX4 saves a new one at disarm); through the velocity aiding's direction that
-    moves the inclination a little too: measured 0-1.5 % apart for eskf. The autopilot's
+    of it; through the velocity aiding's direction that moves the inclination a little
+    too. PX4 saves a new one at disarm, which the record holds last since the bridge
+    records PX4's parameters: its replay is therefore given the declination of the flight
+    (``replayed_beside_vqf(declination_deg=...)``); given the saved one it was 3.5 % apart
+    in one run of the suite. The autopilot's
     own was 0.4-2.2 % apart, once 5.2 %, while the live scores paired its 50 Hz attitude
     with the nearest sample instead of interpolating it as the replay does (fixed in
     ``bridge.estimate.compare.pairs_at_shift``; the same flight's record re-scored: 0.516
@@ -238,17 +241,19 @@ def armed_span_scores(record: Path, sysid: int, label: str
     return ours, theirs
 
 
-def replayed_beside_vqf(record: Path, label: str) -> dict:
+def replayed_beside_vqf(record: Path, label: str, declination_deg: float | None = None
+                        ) -> dict:
     """The recorded session replayed (``attitude-bridge replay --smooth --compare
     vqf,vqf-offline``: eskf with the defaults online and smoothed, the autopilot's own
     attitude, VQF online and offline, on the same samples against the same truth, every
-    phase), scores by label, printed."""
+    phase), scores by label, printed. ``declination_deg``: as ``--declination-deg``."""
     from replay.evaluate import evaluate
     from replay.readers import load
 
     ev = evaluate(load(record, reference="truth"), ["eskf"], smooth=True,
-                  compare=("vqf", "vqf-offline"))
-    print(f"{label} session replayed: " + ", ".join(
+                  compare=("vqf", "vqf-offline"), declination_deg=declination_deg)
+    d = ev.prepared.declination
+    print(f"{label} session replayed (declination {d.deg:.3f}°, {d.source}): " + ", ".join(
         f"{name} {s.total_deg:.2f} / {s.inclination_deg:.2f}" for name, s in ev.scores.items()))
     return ev.scores
 

@@ -210,10 +210,14 @@ def bracket(t_src: np.ndarray, t: np.ndarray, max_gap: float
     """For each time in ``t``, into sorted ``t_src`` (2 samples at least): the index of
     the sample at or before it, the fraction (0..1) of the way to the next one, and
     whether it lies within ``t_src``'s span between two samples at most ``max_gap``
-    apart (elsewhere the other two are meaningless)."""
+    apart or on a sample itself (elsewhere the other two are meaningless). On a sample
+    nothing is interpolated, so a gap after it does not matter: a truth placed at the
+    time of the IMU sample read before it is paired with that sample's estimate even
+    when the stream pauses next."""
     i0 = np.clip(np.searchsorted(t_src, t, side="right") - 1, 0, len(t_src) - 2)
     t0, t1 = t_src[i0], t_src[i0 + 1]
-    inside = (t >= t_src[0]) & (t <= t_src[-1]) & (t1 - t0 <= max_gap)
+    inside = (t >= t_src[0]) & (t <= t_src[-1]) & ((t1 - t0 <= max_gap) | (t == t0)
+                                                   | (t == t1))
     frac = np.clip((t - t0) / np.maximum(t1 - t0, 1e-12), 0.0, 1.0)
     return i0, frac, inside
 

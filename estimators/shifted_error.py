@@ -37,8 +37,8 @@ def _rms_at_shifts(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
                 continue
             i = min(max(np.searchsorted(t_est, t, side="right") - 1, 0), n - 2)
             span = t_est[i + 1] - t_est[i]
-            if span > max_gap:
-                continue
+            if span > max_gap and t != t_est[i] and t != t_est[i + 1]:
+                continue  # (on a sample itself nothing is interpolated: see Q.bracket)
             frac = min(max((t - t_est[i]) / max(span, 1e-12), 0.0), 1.0)
             aw, ax, ay, az = q_est[i, 0], q_est[i, 1], q_est[i, 2], q_est[i, 3]
             bw, bx, by, bz = q_est[i + 1, 0], q_est[i + 1, 1], q_est[i + 1, 2], q_est[i + 1, 3]
@@ -71,7 +71,8 @@ def rms_at_shifts(t_est: np.ndarray, q_est: np.ndarray, t_ref: np.ndarray,
                   min_pairs: int) -> np.ndarray:
     """RMS angle [rad] between each reference sample and the estimate interpolated
     (slerp) at the sample's time + shift, for every shift; a pair only where the two
-    estimates around that time are at most ``max_gap`` apart. NaN for a shift with
+    estimates around that time are at most ``max_gap`` apart, or the time is an
+    estimate's own (as :func:`estimators.quat.bracket`). NaN for a shift with
     fewer than ``min_pairs`` pairs. ``t_est`` sorted, 2 samples at least."""
     return _rms_at_shifts(np.ascontiguousarray(t_est, dtype=np.float64),
                           np.ascontiguousarray(q_est, dtype=np.float64),

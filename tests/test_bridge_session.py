@@ -153,3 +153,22 @@ def test_a_stopped_series_does_not_hold_the_estimators_back():
     got = scores.to_dict()
     assert got["eskf"]["samples"] == 2000
     assert 190 <= got["(vehicle own)"]["samples"] <= 200
+
+
+def test_a_truth_on_an_imu_sample_counts_when_the_stream_pauses_after_it():
+    """The truth is placed at the board time of the IMU sample read before it. An IMU
+    stream that pauses for a few steps (a loaded autopilot) leaves that truth on an
+    estimate's own time with the next estimate beyond the gap the pairing allows: on a
+    sample nothing is interpolated, so it counts; truth inside the gap does not."""
+    truth, est = TimeRing(5000, 4), TimeRing(5000, 4)
+    tilt = Q.from_axis_angle(np.array([0.0, 1.0, 0.0]), np.radians(2.0))
+    t_imu = np.r_[np.arange(0, 100) * 0.004, 0.4 + 0.02 + np.arange(0, 100) * 0.004]
+    for t in t_imu:  # one truth per IMU sample, on its time; a 20-ms pause after 0.396 s
+        est.push(float(t), tilt)
+        truth.push(float(t), Q.identity())
+    truth.push(0.405, Q.identity())  # a truth inside the pause: no estimate around it
+    scores = SessionScores()
+    scores.update(truth, {"eskf": est})
+    got = scores.to_dict()["eskf"]
+    assert got["samples"] == len(t_imu)
+    assert got["inclination_deg"] == pytest.approx(2.0, abs=1e-6)

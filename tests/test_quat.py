@@ -84,3 +84,12 @@ def test_from_acc_mag_recovers_attitude(random_q, world):
 def test_world_name_is_validated():
     with pytest.raises(ValueError, match="NED"):
         Q.world_is_enu("NWU")
+
+
+def test_bracket_takes_a_time_on_a_sample_whatever_the_gap_after_it():
+    t_src = np.array([0.0, 0.01, 0.02, 0.10, 0.11])
+    i0, frac, inside = Q.bracket(t_src, np.array([0.02, 0.05, 0.10, 0.105, 0.11, 0.12]),
+                                 max_gap=0.015)
+    assert inside.tolist() == [True, False, True, True, True, False]
+    assert i0[0] == 2 and frac[0] == 0.0  # on the sample before the gap: itself
+    assert i0[2] == 3 and frac[2] == 0.0

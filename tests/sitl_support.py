@@ -200,8 +200,9 @@ def check_live_session_matches_replay(vehicle: dict, replayed: dict) -> None:
     of it; through the velocity aiding's direction that moves the inclination a little
     too. PX4 saves a new one at disarm, which the record holds last since the bridge
     records PX4's parameters: its replay is therefore given the declination of the flight
-    (``replayed_beside_vqf(declination_deg=...)``); given the saved one it was 3.5 % apart
-    in one run of the suite. The autopilot's
+    (``replayed_beside_vqf(declination_deg=...)``). Given the saved one, the two were
+    3.5 % apart in one run of the suite; how much of that was the declination is not
+    known (in another run, 3.41 or 3.70° moved the replay's inclination by 0.01 %). The autopilot's
     own was 0.4-2.2 % apart, once 5.2 %, while the live scores paired its 50 Hz attitude
     with the nearest sample instead of interpolating it as the replay does (fixed in
     ``bridge.estimate.compare.pairs_at_shift``; the same flight's record re-scored: 0.516

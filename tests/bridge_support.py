@@ -56,13 +56,14 @@ class UdpListener:
     decoded when a test looks (``of_type`` decodes only those whose frame headers name
     the type): a listener that also receives an emulator's whole stream, for its truth,
     would otherwise spend more CPU decoding IMU messages nobody reads than the bridge
-    spends on them.
+    spends on them. With a signing key everything is decoded in arrival order, as
+    pymavlink's signature check refuses a timestamp older than one it has seen.
     """
 
     parser: mavlink.MAVLink = field(default_factory=lambda: mavlink.MAVLink(None, 255, 0))
     sock: socket.socket | None = None
     host: str = "127.0.0.1"  # any 127.x.y.z: another "machine" on the loopback network
-    _datagrams: list = field(default_factory=list)  # (arrival time, bytes)
+    _datagrams: list = field(default_factory=list)  # (arrival time, bytes, frame ids)
     _decoded: dict = field(default_factory=dict)  # datagram index -> its messages
 
     async def start(self) -> int:
@@ -81,7 +82,7 @@ class UdpListener:
                 return
             except OSError:
                 continue
-            self._datagrams.append((time.perf_counter(), data))
+            self._datagrams.append((time.perf_counter(), data, frame_ids(data)))
 
     def _decode(self, index: int) -> list:
         """The messages of one datagram (whole datagrams only: no half frame carries
@@ -103,7 +104,8 @@ class UdpListener:
     @property
     def messages(self) -> list:
         """Every message so far, in arrival order, as (arrival time, message)."""
-        return [(t, m) for k, (t, _) in enumerate(self._datagrams) for m in self._decode(k)]
+        return [(t, m) for k, (t, _, _) in enumerate(self._datagrams)
+                for m in self._decode(k)]
 
     @property
     def port(self) -> int:
@@ -114,10 +116,10 @@ class UdpListener:
 
     def of_type(self, name: str, sysid: int | None = None) -> list:
         msgid = getattr(mavlink, f"MAVLINK_MSG_ID_{name}")
+        every = self.parser.signing.secret_key is not None
         out = []
-        for k, (_, data) in enumerate(self._datagrams):
-            ids = frame_ids(data)
-            if ids is None or msgid in ids:
+        for k, (_, _, ids) in enumerate(self._datagrams):
+            if every or ids is None or msgid in ids:
                 out += [m for m in self._decode(k) if m.get_type() == name and
                         (sysid is None or m.get_srcSystem() == sysid)]
         return out

@@ -135,10 +135,7 @@ class RawMagnetometer:
             difference = float(np.linalg.norm(gap)) / (w.highres_norm / w.n_highres)
             self.difference = max(difference, self.difference or 0.0)
             self.windows += 1
-            if difference > AGREE:
-                self.state = CALIBRATED
-            elif self.uncalibrated:
-                self.state = RAW
+            self.state = CALIBRATED if difference > AGREE else RAW
         self._window = _Window()
 
     def status(self) -> dict[str, object]:

@@ -381,16 +381,16 @@ def _px4_raw_mag(rows: list, scaled: list, src: tuple, mag: np.ndarray,
     scaled = [m for m in scaled if (m.get_srcSystem(), m.get_srcComponent()) == src]
     if not scaled:
         return mag, ""
+    raw = _imu_arrays("SCALED_IMU", scaled, None)[3]
     chooser = RawMagnetometer()
     chooser.set_parameters(params)
     out = mag.copy()
-    events = sorted([(m._order, 0, m) for m in scaled] + [(m._order, 1, i)
-                                                          for i, m in enumerate(rows)],
+    events = sorted([(m._order, 0, i) for i, m in enumerate(scaled)]
+                    + [(m._order, 1, i) for i, m in enumerate(rows)],
                     key=operator.itemgetter(0, 1))
     for _, kind, item in events:
         if kind == 0:
-            chooser.offer_raw(np.array([item.xmag, item.ymag, item.zmag], float) * 1e-3,
-                              item._timestamp)
+            chooser.offer_raw(raw[item], scaled[item]._timestamp)
             continue
         m = rows[item]
         numbers = (m.xmag, m.ymag, m.zmag)

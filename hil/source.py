@@ -20,8 +20,11 @@ from .recording import Recording
 from .sensors import ms5611
 from .sensors.hmc5883l import OVERFLOW, Hmc5883l
 from .sensors.mpu6050 import G, Mpu6050, temperature_c
+from .truth import Truth
 
 CHUNK_S = 0.05  # stream time per chunk
+#: Stream time of motion truth evaluated at once, ahead of the chunks (``TruthAhead``).
+TRUTH_AHEAD_S = 1.0
 #: Profiles are laid out for this long when streaming without a duration (then hover).
 UNBOUNDED_HORIZON_S = 6 * 3600.0
 #: RNG streams, in SeedSequence.spawn order. Never reorder (it changes every run).
@@ -43,10 +46,42 @@ def random_streams(seed: int) -> dict[str, np.random.Generator]:
     return {name: np.random.default_rng(s) for name, s in zip(STREAMS, children, strict=True)}
 
 
+class TruthAhead:
+    """A profile's truth on the grid t = i / rate, evaluated a block of indices at a time.
+
+    A profile's truth costs about as much for one time as for a thousand (a few dozen
+    numpy calls on short arrays), and each 50-ms chunk asks for it at four rates (the
+    chip's internal rate, the IMU's, the magnetometer's, the barometer's): evaluated a
+    second ahead, the sampling loop runs several times faster. The samples stay the same:
+    every time is the same float i / rate, and a profile's truth at a time does not
+    depend on the other times it is asked with."""
+
+    def __init__(self, profile: Profile, rate_hz: float, block: int, end: int | None):
+        self.profile = profile
+        self.rate_hz = rate_hz
+        self.block = max(1, block)
+        self.end = end  # index past the last one a finite run asks for (None: unbounded)
+        self._start = 0
+        self._held: Truth | None = None
+
+    def at(self, start: int, stop: int) -> Truth:
+        """The truth at i / rate for i in [start, stop)."""
+        held = self._held
+        if held is None or start < self._start or stop > self._start + len(held.t):
+            ahead = start + self.block
+            if self.end is not None:
+                ahead = min(ahead, self.end)
+            times = np.arange(start, max(stop, ahead)) / self.rate_hz
+            held = self._held = self.profile.truth(times)
+            self._start = start
+        return held.rows(slice(start - self._start, stop - self._start))
+
+
 class SampleSource:
     """Produces consecutive ``Recording`` chunks of ``chunk_samples`` IMU samples."""
 
-    def __init__(self, config: EmulatorConfig, counts: FaultCounts | None = None):
+    def __init__(self, config: EmulatorConfig, counts: FaultCounts | None = None,
+                 truth_ahead_s: float = TRUTH_AHEAD_S):
         self.config = config
         self.counts = counts if counts is not None else FaultCounts()
         self.rng = random_streams(config.seed)
@@ -73,10 +108,18 @@ class SampleSource:
         self.total_samples = (None if config.duration_s is None
                               else round(config.duration_s * self.imu_rate))
         self.next_index = 0
+        self._truth_int = self._truth_grid(self.internal_rate, truth_ahead_s)
+        self._truth_mag = self._truth_grid(self.mag_rate, truth_ahead_s)
+        self._truth_baro = self._truth_grid(config.baro_rate_hz, truth_ahead_s)
         self._next_mag = 0  # index of the next magnetometer sample to take
         self._next_baro = 0
         self._mag_held = np.zeros(3, dtype=np.int16)
         self._last_imu = (np.zeros(3, np.int16), np.zeros(3, np.int16), 0)
+
+    def _truth_grid(self, rate_hz: float, ahead_s: float) -> TruthAhead:
+        duration = self.config.duration_s
+        end = None if duration is None else math.ceil(duration * rate_hz) + 1
+        return TruthAhead(self.profile, rate_hz, math.ceil(ahead_s * rate_hz), end)
 
     @property
     def finished(self) -> bool:
@@ -101,7 +144,7 @@ class SampleSource:
         t = t_int[::dec]
 
         # MPU6050 at its internal rate, with the physical faults added in.
-        truth_int = self.profile.truth(t_int)
+        truth_int = self._truth_int.at(k0 * dec, (k0 + n) * dec)
         rate_dps = np.degrees(chip_from_frd(truth_int.rates))
         accel_g = chip_from_frd(truth_int.specific_force()) / G
         bias_dps, vib_g = self.sensor_faults.physical(t_int, self.internal_rate)
@@ -112,7 +155,7 @@ class SampleSource:
         self.sensor_faults.imu_counts(gyr_c, acc_c, temp_raw, self._last_imu)
         self._last_imu = (gyr_c[-1].copy(), acc_c[-1].copy(), int(temp_raw[-1]))
 
-        truth = self.profile.truth(t)
+        truth = truth_int.rows(slice(None, None, dec))
         armed, landed_state = self.profile.flight_state(t)
         mag_c, updated = self._magnetometer(t)
         time_us = self.clock.stamp(t, self.clock_faults.offsets(t))
@@ -145,8 +188,7 @@ class SampleSource:
         out = np.empty((len(t), 3), dtype=np.int16)
         updated = np.zeros(len(t), dtype=bool)
         if len(new):
-            t_mag = new / self.mag_rate
-            body = self.profile.truth(t_mag).to_body(self.field_ned)
+            body = self._truth_mag.at(int(new[0]), int(new[-1]) + 1).to_body(self.field_ned)
             field = chip_from_frd(body) + self.sensor_faults.mag_field(len(new))
             counts = self.hmc.measure(field, self.rng["hmc_noise"])
             prior = np.concatenate([[self._mag_held], counts]).astype(np.int16)
@@ -163,10 +205,10 @@ class SampleSource:
         """MS5611 readings taken before t_end, compensated by the firmware."""
         env = self.config.environment
         stop = math.ceil(t_end * self.config.baro_rate_hz - 1e-9)
-        idx = np.arange(self._next_baro, max(self._next_baro, stop))
-        self._next_baro = max(self._next_baro, stop)
-        t = idx / self.config.baro_rate_hz
-        truth = self.profile.truth(t)
+        first, stop = self._next_baro, max(self._next_baro, stop)
+        self._next_baro = stop
+        t = np.arange(first, stop) / self.config.baro_rate_hz
+        truth = self._truth_baro.at(first, stop)
         true_p = env.pressure_pa(env.ground_altitude_m - truth.position_ned[:, 2])
         d1, d2 = self.config.ms5611.convert(true_p, env.board_temperature(t), self.rng["baro"])
         comp = [ms5611.compensate(self.config.ms5611.c, a, b) for a, b in zip(d1, d2, strict=True)]

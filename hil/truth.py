@@ -28,6 +28,13 @@ class Truth:
     velocity_ned: np.ndarray  # (N, 3) [m/s]
     position_ned: np.ndarray  # (N, 3) [m] relative to the take-off point
 
+    def rows(self, index: slice) -> Truth:
+        """The truth at a part of its times (copies: the callers' arithmetic then runs on
+        contiguous arrays, as on a fresh evaluation)."""
+        return Truth(**{name: np.ascontiguousarray(getattr(self, name)[index])
+                        for name in ("t", "q", "rates", "accel_ned", "velocity_ned",
+                                     "position_ned")})
+
     def specific_force(self) -> np.ndarray:
         """What an ideal accelerometer reads, FRD [m/s^2]: R^T (a - g)."""
         r = quat.to_dcm(self.q)

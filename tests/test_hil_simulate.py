@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
@@ -12,9 +12,12 @@ from scipy import signal
 from estimators import quat
 from hil import EmulatorConfig, FaultConfig, simulate
 from hil.environment import G
+from hil.gps import GpsConfig
 from hil.motion import TILT_PITCH_DEG, TILT_ROLL_DEG
+from hil.recording import Recording
 from hil.sensors.hmc5883l import Hmc5883lConfig
 from hil.sensors.mpu6050 import Mpu6050Config
+from hil.source import TRUTH_AHEAD_S, SampleSource
 
 #: A chip without fixed errors, to see one effect at a time.
 IDEAL_MPU = Mpu6050Config(gyro_offset_dps=0.0, accel_offset_mg=0.0, gyro_bias_walk_dps_rts=0.0,
@@ -29,6 +32,40 @@ def test_same_seed_same_samples_other_seed_other_samples():
         assert np.array_equal(getattr(a, name), getattr(b, name))
     assert not np.array_equal(a.gyr_counts, c.gyr_counts)
     assert np.array_equal(a.truth_q, c.truth_q)  # the motion does not depend on the seed
+
+
+@pytest.mark.parametrize("profile, rate_hz, duration_s", [
+    ("handheld_flight", 250.0, 48.0),  # hand -> flight switch, take-offs, touchdown
+    ("aggressive", 1000.0, 7.3),       # a run that ends inside a truth block
+])
+def test_truth_evaluated_ahead_gives_the_same_samples(profile, rate_hz, duration_s):
+    """Evaluating the motion a second ahead (the default) instead of chunk by chunk
+    changes no sample, no truth and no fault, to the bit (the sign of a zero included)."""
+    faults = FaultConfig(vibration_g=0.2, vibration_dps=2.0, vibration_hz=90.0,
+                         mag_disturbance_rate_hz=0.5, mag_disturbance_gauss=0.3,
+                         mag_disturbance_duration_s=0.4, gyro_bias_step_rate_hz=0.3,
+                         gyro_bias_step_dps=1.0, time_jump_rate_hz=0.2, time_jump_s=0.5)
+    cfg = EmulatorConfig(profile=profile, rate_hz=rate_hz, duration_s=duration_s, seed=11,
+                         faults=faults, gps=GpsConfig())
+
+    def chunks(truth_ahead_s: float) -> list[Recording]:
+        source = SampleSource(cfg, truth_ahead_s=truth_ahead_s)
+        out = []
+        while not source.finished:
+            out.append(source.chunk())
+        return out
+
+    ahead, per_chunk = chunks(TRUTH_AHEAD_S), chunks(0.0)
+    assert len(ahead) == len(per_chunk) > 100
+    for a, b in zip(ahead, per_chunk, strict=True):
+        for f in fields(Recording):
+            x, y = getattr(a, f.name), getattr(b, f.name)
+            if isinstance(x, np.ndarray):
+                assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=True), f.name
+                if x.dtype.kind == "f":
+                    assert np.array_equal(np.signbit(x), np.signbit(y)), f.name
+            else:
+                assert x == y, f.name
 
 
 def test_rates_of_each_chip_and_clock():

@@ -38,6 +38,9 @@ from bridge.wire.codec import signing_key_from_text
 from bridge.wire.mav import mavlink
 from estimators import quat as Q
 
+#: mostly waits on real time: spread among computing tests (conftest)
+pytestmark = pytest.mark.realtime
+
 OMEGA = np.radians([0.0, 0.0, 30.0])
 RATE = 500.0
 STEP_US = 2000

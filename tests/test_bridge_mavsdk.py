@@ -6,6 +6,7 @@ import asyncio
 import math
 
 import numpy as np
+import pytest
 from bridge_support import (
     MavSender,
     async_test,
@@ -18,6 +19,9 @@ from mavsdk import ComponentType, Configuration, ConnectionResult, Mavsdk
 from mavsdk.plugins.telemetry import Telemetry
 
 from estimators import quat as Q
+
+#: mostly waits on real time: spread among computing tests (conftest)
+pytestmark = pytest.mark.realtime
 
 
 @async_test

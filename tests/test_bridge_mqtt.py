@@ -35,6 +35,9 @@ from bridge.publish.mqtt import MqttPublisher, MqttSettings
 from bridge.vehicle.imu_sample import ImuSample, SourceKey
 from estimators.spec import EstimatorSpec
 
+#: mostly waits on real time: spread among computing tests (conftest)
+pytestmark = pytest.mark.realtime
+
 REPO = Path(__file__).resolve().parents[1]
 
 MOSQUITTO = "/usr/sbin/mosquitto"

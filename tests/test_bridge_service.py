@@ -29,6 +29,9 @@ from bridge_support import (
 from bridge.wire.codec import signing_key_from_text
 from bridge.wire.mav import mavlink
 
+#: mostly waits on real time: spread among computing tests (conftest)
+pytestmark = pytest.mark.realtime
+
 OMEGA = np.radians([0.0, 0.0, 40.0])  # yaw rate of the test motion
 
 

@@ -552,7 +552,10 @@ async def test_message_types_have_their_own_clocks_and_the_requested_one_wins():
                 (1_000_000 + 2000 * i) % 2**32, *acc_mg, 0, 0, 0, *mag_mg, 0))
             if i % 25 == 24:
                 await asyncio.sleep(0.05)
-        await asyncio.sleep(0.2)
+        # every sample read (under load, a fixed wait once ran out before the first)
+        await wait_until(lambda: sum(s.accepted + s.counts["jump"]
+                                     for s in bridge.ingest.sources.values()) >= 500)
+        await asyncio.sleep(0.2)  # (and the one output on its way)
         bridge.publish_status()
         status = bridge.last_status[1]
     assert len(vehicle.listener.of_type("ATTITUDE_QUATERNION")) == 1  # only the first

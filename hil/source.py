@@ -60,7 +60,7 @@ class TruthAhead:
         self.profile = profile
         self.rate_hz = rate_hz
         self.block = max(1, block)
-        self.end = end  # index past the last one a finite run asks for (None: unbounded)
+        self.end = end  # no lookahead past this index: a finite run's end (None: unbounded)
         self._start = 0
         self._held: Truth | None = None
 

@@ -47,6 +47,18 @@ def frame_ids(data: bytes) -> set[int] | None:
     return ids if i == n else None
 
 
+def lone_frame_stamp(data: bytes) -> int | None:
+    """The first eight payload bytes of a datagram that is one whole MAVLink 2 frame, as
+    an unsigned little-endian integer: a message's time_usec where that field leads it
+    (HIL_STATE_QUATERNION); None for anything else (then only decoding tells)."""
+    if len(data) < 12 or data[0] != 0xFD:
+        return None
+    size = data[1]
+    if 12 + size + (13 if data[2] & 1 else 0) != len(data):
+        return None
+    return int.from_bytes(data[10:10 + min(size, 8)], "little")  # (trailing zeros trimmed)
+
+
 @dataclass
 class UdpListener:
     """Collects every MAVLink message sent to its port (a stand-in GCS).
@@ -122,6 +134,26 @@ class UdpListener:
             if every or ids is None or msgid in ids:
                 out += [m for m in self._decode(k) if m.get_type() == name and
                         (sysid is None or m.get_srcSystem() == sysid)]
+        return out
+
+    def truth_by_ms(self, wanted: set[int]) -> dict[int, list[float]]:
+        """The emulator's truth (HIL_STATE_QUATERNION attitude) at the wanted board ms,
+        the last one of each ms as it arrived. An emulator sends one per IMU sample and
+        a 50 Hz output needs a twentieth of them, so a datagram whose time_usec (read
+        from its bytes) is not wanted is left undecoded."""
+        name = "HIL_STATE_QUATERNION"
+        msgid = mavlink.MAVLINK_MSG_ID_HIL_STATE_QUATERNION
+        every = self.parser.signing.secret_key is not None
+        out = {}
+        for k, (_, data, ids) in enumerate(self._datagrams):
+            if not (every or ids is None or msgid in ids):
+                continue
+            stamp = lone_frame_stamp(data) if ids == {msgid} and not every else None
+            if stamp is not None and stamp // 1000 not in wanted:
+                continue
+            for m in self._decode(k):
+                if m.get_type() == name and m.time_usec // 1000 in wanted:
+                    out[m.time_usec // 1000] = m.attitude_quaternion
         return out
 
     def close(self) -> None:

@@ -65,10 +65,9 @@ async def stream(cfg: EmulatorConfig, **settings):
 
 def outputs_with_truth(listener: UdpListener):
     """(bridge quaternions, truth at their stamps, time_boot_ms)."""
-    truth = {m.time_usec // 1000: m.attitude_quaternion
-             for m in listener.of_type("HIL_STATE_QUATERNION")}
-    out = [m for m in listener.of_type("ATTITUDE_QUATERNION")
-           if m.get_srcComponent() == 191 and m.time_boot_ms in truth]
+    out = [m for m in listener.of_type("ATTITUDE_QUATERNION") if m.get_srcComponent() == 191]
+    truth = listener.truth_by_ms({m.time_boot_ms for m in out})
+    out = [m for m in out if m.time_boot_ms in truth]
     stamps = np.array([m.time_boot_ms for m in out])
     return (np.array([[m.q1, m.q2, m.q3, m.q4] for m in out]),
             np.array([truth[t] for t in stamps]), stamps)

@@ -22,19 +22,14 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: use this checkout's emulator
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from hil import EmulatorConfig
-from hil.recording import Recording
-from hil.source import TRUTH_AHEAD_S, SampleSource
+from hil import EmulatorConfig, simulate
+from hil.source import TRUTH_AHEAD_S
 
 
 def simulate_cpu_s(config: EmulatorConfig, truth_ahead_s: float) -> float:
-    """CPU seconds of one offline run (``hil.simulate``'s loop, with a chosen lookahead)."""
+    """CPU seconds of one offline run with a chosen lookahead."""
     start = time.process_time()
-    source = SampleSource(config, truth_ahead_s=truth_ahead_s)
-    parts = []
-    while not source.finished:
-        parts.append(source.chunk())
-    Recording.concatenate(parts)
+    simulate(config, truth_ahead_s)
     return time.process_time() - start
 
 

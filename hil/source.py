@@ -234,11 +234,12 @@ class SampleSource:
                 "gps_pos_ned": fixes.pos_ned, "gps_truth_vel_ned": fixes.truth_vel_ned}
 
 
-def simulate(config: EmulatorConfig) -> Recording:
-    """All samples and truth of a finite run, without sockets (faults in ``.faults``)."""
+def simulate(config: EmulatorConfig, truth_ahead_s: float = TRUTH_AHEAD_S) -> Recording:
+    """All samples and truth of a finite run, without sockets (faults in ``.faults``);
+    ``truth_ahead_s`` as ``SampleSource``'s (the samples do not depend on it)."""
     if config.duration_s is None:
         raise ValueError("simulate needs a finite duration_s")
-    source = SampleSource(config)
+    source = SampleSource(config, truth_ahead_s=truth_ahead_s)
     parts = []
     while not source.finished:
         parts.append(source.chunk())

@@ -12,6 +12,7 @@ import functools
 import math
 import socket
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,14 +30,20 @@ ZERO3 = np.zeros(3)
 ZERO3.setflags(write=False)
 
 
+def _v2_frame_size(data: bytes, i: int) -> int:
+    """Bytes of the MAVLink 2 frame starting at ``i``: 10-byte header, payload, checksum
+    and, when flagged, the 13-byte signature."""
+    return 12 + data[i + 1] + (13 if data[i + 2] & 1 else 0)
+
+
 def frame_ids(data: bytes) -> set[int] | None:
     """The message ids of the MAVLink frames a datagram holds, read from their headers
     alone; None when the bytes are not a clean run of frames (then only decoding tells)."""
     ids: set[int] = set()
     i, n = 0, len(data)
     while i < n:
-        if data[i] == 0xFD and i + 10 <= n:  # MAVLink 2: 10-byte header, signature flag
-            size = 12 + data[i + 1] + (13 if data[i + 2] & 1 else 0)
+        if data[i] == 0xFD and i + 10 <= n:  # MAVLink 2
+            size = _v2_frame_size(data, i)
             ids.add(data[i + 7] | data[i + 8] << 8 | data[i + 9] << 16)
         elif data[i] == 0xFE and i + 6 <= n:  # MAVLink 1: 6-byte header
             size = 8 + data[i + 1]
@@ -51,12 +58,9 @@ def lone_frame_stamp(data: bytes) -> int | None:
     """The first eight payload bytes of a datagram that is one whole MAVLink 2 frame, as
     an unsigned little-endian integer: a message's time_usec where that field leads it
     (HIL_STATE_QUATERNION); None for anything else (then only decoding tells)."""
-    if len(data) < 12 or data[0] != 0xFD:
+    if len(data) < 12 or data[0] != 0xFD or _v2_frame_size(data, 0) != len(data):
         return None
-    size = data[1]
-    if 12 + size + (13 if data[2] & 1 else 0) != len(data):
-        return None
-    return int.from_bytes(data[10:10 + min(size, 8)], "little")  # (trailing zeros trimmed)
+    return int.from_bytes(data[10:10 + min(data[1], 8)], "little")  # (trailing zeros trimmed)
 
 
 @dataclass
@@ -126,14 +130,19 @@ class UdpListener:
     def sendto(self, data: bytes, addr: tuple) -> None:
         self.sock.sendto(data, addr)
 
-    def of_type(self, name: str, sysid: int | None = None) -> list:
-        msgid = getattr(mavlink, f"MAVLINK_MSG_ID_{name}")
+    def _may_hold(self, msgid: int) -> Iterator[tuple[int, bytes, set[int] | None]]:
+        """(index, bytes, frame ids) of the datagrams that may hold ``msgid``, in arrival
+        order: all of them with a signing key (decoded in order, see the class doc)."""
         every = self.parser.signing.secret_key is not None
-        out = []
-        for k, (_, _, ids) in enumerate(self._datagrams):
+        for k, (_, data, ids) in enumerate(self._datagrams):
             if every or ids is None or msgid in ids:
-                out += [m for m in self._decode(k) if m.get_type() == name and
-                        (sysid is None or m.get_srcSystem() == sysid)]
+                yield k, data, ids
+
+    def of_type(self, name: str, sysid: int | None = None) -> list:
+        out = []
+        for k, _, _ in self._may_hold(getattr(mavlink, f"MAVLINK_MSG_ID_{name}")):
+            out += [m for m in self._decode(k) if m.get_type() == name and
+                    (sysid is None or m.get_srcSystem() == sysid)]
         return out
 
     def truth_by_ms(self, wanted: set[int]) -> dict[int, list[float]]:
@@ -145,9 +154,7 @@ class UdpListener:
         msgid = mavlink.MAVLINK_MSG_ID_HIL_STATE_QUATERNION
         every = self.parser.signing.secret_key is not None
         out = {}
-        for k, (_, data, ids) in enumerate(self._datagrams):
-            if not (every or ids is None or msgid in ids):
-                continue
+        for k, data, ids in self._may_hold(msgid):
             stamp = lone_frame_stamp(data) if ids == {msgid} and not every else None
             if stamp is not None and stamp // 1000 not in wanted:
                 continue

@@ -13,8 +13,9 @@ one truncated ULog (reported, not scored). Each log is a few seconds to about th
 
 Each run is the real command line in a subprocess (``attitude-bridge replay DIR -q
 --json ...``, default estimators): ``--jobs 1``, ``--jobs 2`` and ``--scheduler`` on a
-``LocalCluster(n_workers=2, threads_per_worker=1)`` started here (its start-up is not
-timed, as a user's cluster would already be running): once with Dask's defaults, its
+``LocalCluster(n_workers=2, threads_per_worker=1)`` started in a process of its own
+(``benchmarks/standing_cluster.py``; its start-up is not timed, as a user's cluster
+would already be running): once with Dask's defaults, its
 workers fresh (the first log on each loads the kernels), and once with the worker
 settings README recommends for replay (``REPLAY_WORKERS``: the preload loads the kernels
 while the workers start), twice on the same workers (a standing cluster's second run).
@@ -30,6 +31,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
 import os
 import resource
 import shutil
@@ -39,6 +41,8 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -52,10 +56,13 @@ DATA = shared_folder("data", "ATTITUDE_BRIDGE_DATA")
 CUT_S = 15.0  # length of a cut of a long recording [s]
 #: What README's `dask worker` line sets: Dask's defaults cost these tasks about a fifth
 #: of their CPU (the worker's sampling profiler; the nanny's MALLOC_TRIM_THRESHOLD_ of
-#: 64 kB, which hands every log's arrays back to the OS and maps them again for the next);
-#: the preload loads the kernels while the worker starts (replay.dask_preload)
+#: 64 kB, which hands every log's arrays back to the OS and maps them again for the next;
+#: the event loop's health tick, 50 times a second, each one taking the interpreter lock
+#: from the thread that runs the log); the preload loads the kernels while the worker
+#: starts (replay.dask_preload)
 REPLAY_WORKERS = {"distributed.worker.profile.enabled": False,
                   "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": str(16 << 20),
+                  "distributed.admin.tick.interval": "1s",
                   "distributed.worker.preload": ["replay.dask_preload"]}
 
 
@@ -192,7 +199,11 @@ def make_corpus(root: Path, n_logs: int) -> list[Path]:
 
 
 class PeakRss:
-    """Samples the RSS of a process and its descendants every 20 ms; the peak per pid."""
+    """Samples the RSS of a process and its descendants every 20 ms; the peak per pid.
+    The descendants are listed again every LIST_EVERY_S: walking /proc for them every
+    20 ms took 4 % of a core, which two busy workers on two cores would lose."""
+
+    LIST_EVERY_S = 0.25
 
     def __init__(self, root_pid: int) -> None:
         import psutil
@@ -212,8 +223,12 @@ class PeakRss:
             return []
 
     def _run(self) -> None:
+        procs: list = []
+        listed = -math.inf
         while not self._stop.is_set():
-            for p in self._procs():
+            if time.monotonic() - listed > self.LIST_EVERY_S:  # listing them costs most
+                procs, listed = self._procs(), time.monotonic()
+            for p in procs:
                 try:
                     rss = p.memory_info().rss
                 except self.psutil.Error:
@@ -241,6 +256,27 @@ def replay(folder: Path, extra: list[str], out_json: Path) -> tuple[float, dict[
     if proc.returncode != 0:
         print(err, file=sys.stderr)
     return seconds, {proc.pid: peaks.pop(proc.pid, 0), **peaks}, proc.returncode
+
+
+@contextmanager
+def standing_cluster(config: dict) -> Iterator[str]:
+    """The address of a two-worker LocalCluster with this Dask configuration, running in
+    a process of its own (benchmarks/standing_cluster.py) until the block ends."""
+    proc = subprocess.Popen([sys.executable, str(REPO / "benchmarks" / "standing_cluster.py"),
+                             json.dumps(config)], cwd=REPO, stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        address = proc.stdout.readline().strip()
+        if not address:
+            raise SystemExit("benchmarks/standing_cluster.py did not start a cluster")
+        yield address
+    finally:
+        proc.stdin.close()
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
 
 
 def max_rss_bytes() -> int:
@@ -288,21 +324,18 @@ def main() -> None:
     cli_pid, *workers = peaks
     report("2 local workers (--jobs 2)", seconds, [peaks[p] for p in workers], peaks[cli_pid],
            code)
-    import dask
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     runs = (("Dask LocalCluster, 2 workers", "dask.json", {}, 1),
             ("Dask, workers set as README", "dask_tuned.json", REPLAY_WORKERS, 2))
     for name, json_name, config, repeats in runs:
-        with dask.config.set(config), LocalCluster(
-                n_workers=2, threads_per_worker=1, processes=True,
-                dashboard_address=":0") as cluster, Client(cluster) as client:
+        with standing_cluster(config) as address:
             for k in range(repeats):  # again: the same workers, as a standing cluster's
                 label, summary = ((name, json_name) if k == 0 else
                                   (f"{name}, again", json_name.replace(".json", "_again.json")))
-                seconds, peaks, code = replay(root, ["--scheduler", cluster.scheduler_address],
-                                              out / summary)
-                exact = client.run(max_rss_bytes)  # the workers' own peak, since they started
+                seconds, peaks, code = replay(root, ["--scheduler", address], out / summary)
+                with Client(address) as client:  # the workers' own peak, since they started
+                    exact = client.run(max_rss_bytes)
                 report(label, seconds, list(exact.values()), next(iter(peaks.values())), code)
     base = results["one core (--jobs 1)"]["seconds"]
     for name in list(results)[1:]:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import importlib.util
 import logging
+import sys
 from collections import deque
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
@@ -136,6 +137,52 @@ def connect(address: str, timeout: float | None = None):
     return client
 
 
+#: An event-loop tick more frequent than this costs a replay task CPU (Dask's default is
+#: 20 ms: each tick takes the interpreter lock from the thread that runs the log).
+SLOW_TICK_S = 0.5
+#: glibc told to return freed memory above this hands each log's arrays back to the
+#: system and maps them again for the next (Dask's nanny sets 64 kB).
+MIN_TRIM_BYTES = 1 << 20
+
+
+def worker_costs() -> list[str]:
+    """Run on a worker (``Client.run``): which of Dask's defaults that cost a replay task
+    CPU this worker runs. README's ``export`` line for ``dask worker`` turns each off;
+    together they took 10-20 % more CPU per log in ``benchmarks/corpus.py``."""
+    import os
+
+    import dask
+    from dask.utils import parse_timedelta
+
+    costs = []
+    if dask.config.get("distributed.worker.profile.enabled", False):
+        costs.append("the sampling profiler")
+    tick = parse_timedelta(dask.config.get("distributed.admin.tick.interval", "1s"))
+    if tick is not None and tick < SLOW_TICK_S:
+        costs.append(f"an event-loop tick every {tick * 1000:g} ms")
+    trim = os.environ.get("MALLOC_TRIM_THRESHOLD_", "")
+    if trim.isdigit() and int(trim) < MIN_TRIM_BYTES:
+        costs.append(f"glibc returning memory above {int(trim) // 1024} kB")
+    return costs
+
+
+def advise_on_workers(client) -> str | None:
+    """One line for the user when the cluster's workers run settings that slow replay
+    (None when they do not, or cannot say: it is advice, and a worker that cannot
+    answer shows in the tasks anyway)."""
+    try:
+        found = client.run(worker_costs)
+    except Exception:
+        return None
+    slow = [costs for costs in found.values() if costs]
+    if not slow:
+        return None
+    names = sorted({cost for costs in slow for cost in costs})
+    return (f"note: --scheduler: {len(slow)} of {len(found)} worker(s) run "
+            f"{', '.join(names)}, which cost replay 10-20 % more CPU per log; README's "
+            f"`export` line for `dask worker` turns them off")
+
+
 #: A batch holds 1/(BATCH_SHARE × workers) of the work not yet sent.
 BATCH_SHARE = 3
 
@@ -199,6 +246,9 @@ def run_on_cluster(fn: Callable[..., Any], tasks: Sequence[Task], address: str,
     from distributed import as_completed
 
     client = connect(address)
+    advice = advise_on_workers(client)
+    if advice:
+        print(advice, file=sys.stderr)
     out = Outcome([None] * len(tasks))
     sent: dict[str, tuple[Any, list[int]]] = {}
     pending = as_completed(loop=client.loop)

@@ -410,6 +410,11 @@ def test_two_local_processes_give_the_one_core_summary(corpus, one_core, tmp_pat
 
 #: README's worker line: ``dask worker ... --preload replay.dask_preload``
 PRELOAD = {"distributed.worker.preload": ["replay.dask_preload"]}
+#: Dask's own defaults for what README's ``export`` line changes, stated so that a shell
+#: that has run that line does not change the tests
+DASK_DEFAULTS = {"distributed.worker.profile.enabled": True,
+                 "distributed.admin.tick.interval": "20ms",
+                 "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": 65536}
 
 
 @pytest.fixture(scope="module")
@@ -417,9 +422,13 @@ def dask_cluster():
     distributed = pytest.importorskip("distributed")
     import dask
 
-    with dask.config.set(PRELOAD), distributed.LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as c:
-        yield c.scheduler_address
+    with pytest.MonkeyPatch.context() as env:
+        env.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)  # the nanny's 64 kB, not ours
+        with dask.config.set({**DASK_DEFAULTS, **PRELOAD}):
+            cluster_ = distributed.LocalCluster(n_workers=2, threads_per_worker=1,
+                                                processes=True, dashboard_address=":0")
+    with cluster_:
+        yield cluster_.scheduler_address
 
 
 def _worker_readiness() -> dict:
@@ -456,6 +465,33 @@ def test_dask_scheduler_gives_the_one_core_summary(corpus, one_core, dask_cluste
     assert code == 0 and json.loads((tmp_path / "s.json").read_text()) == doc
     assert "6/6 done, 2 failed" in err  # the progress bar (not -q)
     assert "corrupt.tlog" in stdout
+    # the fixture's workers keep Dask's defaults: the user is told what they cost
+    assert ("note: --scheduler: 2 of 2 worker(s) run an event-loop tick every 20 ms, glibc "
+            "returning memory above 64 kB, the sampling profiler" in err), err
+
+
+def _readme_worker_environment() -> dict[str, str]:
+    """The variables of README's ``export`` line for ``dask worker``."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    line = next(x for x in readme.splitlines() if x.startswith("export DASK_DISTRIBUTED__"))
+    return dict(word.split("=", 1) for word in line.split()[1:])
+
+
+def test_readme_worker_settings_leave_nothing_that_slows_replay(monkeypatch):
+    """What ``worker_costs`` finds on a worker with Dask's defaults (the nanny's 64-kB
+    trim threshold in its environment), and that README's line turns all of it off."""
+    import dask
+
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")
+    with dask.config.set(DASK_DEFAULTS):
+        assert cluster.worker_costs() == ["the sampling profiler",
+                                          "an event-loop tick every 20 ms",
+                                          "glibc returning memory above 64 kB"]
+    env = _readme_worker_environment()
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    with dask.config.set(dask.config.collect_env(env)):
+        assert cluster.worker_costs() == []
 
 
 def test_cluster_batches_shrink_to_single_tasks_and_cover_every_task_once():

@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import importlib.util
 import logging
+import os
 import sys
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -147,10 +148,7 @@ MIN_TRIM_BYTES = 1 << 20
 
 def worker_costs() -> list[str]:
     """Run on a worker (``Client.run``): which of Dask's defaults that cost a replay task
-    CPU this worker runs. README's ``export`` line for ``dask worker`` turns each off;
-    together they took 10-20 % more CPU per log in ``benchmarks/corpus.py``."""
-    import os
-
+    CPU this worker runs (README's ``export`` line for ``dask worker`` turns each off)."""
     import dask
     from dask.utils import parse_timedelta
 

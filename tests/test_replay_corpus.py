@@ -423,7 +423,8 @@ def dask_cluster():
     import dask
 
     with pytest.MonkeyPatch.context() as env:
-        env.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)  # the nanny's 64 kB, not ours
+        # the workers get the nanny's 64 kB, whatever this shell exports
+        env.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
         with dask.config.set({**DASK_DEFAULTS, **PRELOAD}):
             cluster_ = distributed.LocalCluster(n_workers=2, threads_per_worker=1,
                                                 processes=True, dashboard_address=":0")

@@ -28,6 +28,8 @@ G = 9.80665
 MAG_NED = np.array([0.25, 0.0, 0.43])
 ZERO3 = np.zeros(3)
 ZERO3.setflags(write=False)
+#: The component id the bridge sends its attitude from.
+BRIDGE_COMPID = 191
 
 
 def _v2_frame_size(data: bytes, i: int) -> int:
@@ -130,10 +132,15 @@ class UdpListener:
     def sendto(self, data: bytes, addr: tuple) -> None:
         self.sock.sendto(data, addr)
 
+    @property
+    def _decodes_all(self) -> bool:
+        """With a signing key every datagram is decoded, in order (see the class doc)."""
+        return self.parser.signing.secret_key is not None
+
     def _may_hold(self, msgid: int) -> Iterator[tuple[int, bytes, set[int] | None]]:
         """(index, bytes, frame ids) of the datagrams that may hold ``msgid``, in arrival
-        order: all of them with a signing key (decoded in order, see the class doc)."""
-        every = self.parser.signing.secret_key is not None
+        order: all of them when ``_decodes_all``."""
+        every = self._decodes_all
         for k, (_, data, ids) in enumerate(self._datagrams):
             if every or ids is None or msgid in ids:
                 yield k, data, ids
@@ -152,7 +159,7 @@ class UdpListener:
         from its bytes) is not wanted is left undecoded."""
         name = "HIL_STATE_QUATERNION"
         msgid = mavlink.MAVLINK_MSG_ID_HIL_STATE_QUATERNION
-        every = self.parser.signing.secret_key is not None
+        every = self._decodes_all
         out = {}
         for k, data, ids in self._may_hold(msgid):
             stamp = lone_frame_stamp(data) if ids == {msgid} and not every else None
@@ -162,6 +169,14 @@ class UdpListener:
                 if m.get_type() == name and m.time_usec // 1000 in wanted:
                     out[m.time_usec // 1000] = m.attitude_quaternion
         return out
+
+    def outputs_with_truth(self, compid: int = BRIDGE_COMPID
+                           ) -> tuple[list, dict[int, list[float]]]:
+        """The ATTITUDE_QUATERNION messages from ``compid`` (the bridge's) whose
+        time_boot_ms has the emulator's truth, and that truth by ms (``truth_by_ms``)."""
+        out = [m for m in self.of_type("ATTITUDE_QUATERNION") if m.get_srcComponent() == compid]
+        truth = self.truth_by_ms({m.time_boot_ms for m in out})
+        return [m for m in out if m.time_boot_ms in truth], truth
 
     def close(self) -> None:
         if self.sock is not None:

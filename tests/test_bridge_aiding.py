@@ -65,9 +65,7 @@ async def stream(cfg: EmulatorConfig, **settings):
 
 def outputs_with_truth(listener: UdpListener):
     """(bridge quaternions, truth at their stamps, time_boot_ms)."""
-    out = [m for m in listener.of_type("ATTITUDE_QUATERNION") if m.get_srcComponent() == 191]
-    truth = listener.truth_by_ms({m.time_boot_ms for m in out})
-    out = [m for m in out if m.time_boot_ms in truth]
+    out, truth = listener.outputs_with_truth()
     stamps = np.array([m.time_boot_ms for m in out])
     return (np.array([[m.q1, m.q2, m.q3, m.q4] for m in out]),
             np.array([truth[t] for t in stamps]), stamps)

@@ -50,9 +50,7 @@ async def fly(autopilot: str, gps: bool, **settings):
         bridge.publish_status()
         status, table = bridge.last_status[1], render(bridge)
     listener.close()
-    out = [m for m in listener.of_type("ATTITUDE_QUATERNION") if m.get_srcComponent() == 191]
-    truth = listener.truth_by_ms({m.time_boot_ms for m in out})
-    out = [m for m in out if m.time_boot_ms in truth]
+    out, truth = listener.outputs_with_truth()
     stamps = np.array([m.time_boot_ms for m in out])
     late = stamps >= stamps[0] + 8000
     est = np.array([[m.q1, m.q2, m.q3, m.q4] for m in out])[late]

@@ -53,9 +53,7 @@ async def run_emulator_through_bridge(cfg: EmulatorConfig, **bridge_settings):
 
 def truth_at_outputs(listener: UdpListener):
     """(bridge quaternions, truth at their time_boot_ms, time_boot_ms) for sysid 1."""
-    aq = [m for m in listener.of_type("ATTITUDE_QUATERNION") if m.get_srcComponent() == 191]
-    truth = listener.truth_by_ms({m.time_boot_ms for m in aq})
-    aq = [m for m in aq if m.time_boot_ms in truth]
+    aq, truth = listener.outputs_with_truth()
     est = np.array([[m.q1, m.q2, m.q3, m.q4] for m in aq])
     ref = np.array([truth[m.time_boot_ms] for m in aq])
     return est, ref, np.array([m.time_boot_ms for m in aq])

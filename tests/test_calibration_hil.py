@@ -153,9 +153,7 @@ def test_bridge_with_calibration_file_meets_the_target(tmp_path):
     cfg = EmulatorConfig(profile="flight", duration_s=25.0, seed=seed, fast=True,
                          rate_hz=RATE_HZ)
     listener = asyncio.run(stream_through_bridge(cfg, str(path)))
-    out = [m for m in listener.of_type("ATTITUDE_QUATERNION") if m.get_srcComponent() == 191]
-    truth = listener.truth_by_ms({m.time_boot_ms for m in out})
-    out = [m for m in out if m.time_boot_ms in truth]
+    out, truth = listener.outputs_with_truth()
     assert len(out) > 0.9 * 25.0 * 50.0
     stamps = np.array([m.time_boot_ms for m in out])
     est = np.array([[m.q1, m.q2, m.q3, m.q4] for m in out])

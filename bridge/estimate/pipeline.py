@@ -12,8 +12,13 @@ after the first samples (a parameter answered, the first position, the heartbeat
 * a new declination turns every estimator's output in place
   (``Estimator.set_declination``): the estimate itself lives in magnetic north and is
   kept, so nothing re-converges;
-* a new model rebuilds the estimators (another filter structure) and restarts the
-  estimate like a reboot does, its output held while it settles.
+* a new model rebuilds the estimators (another filter structure). Learned soon after
+  the estimate started (an autopilot's first heartbeat comes after its first IMU
+  samples), the samples so far run again through the rebuilt estimators, so the estimate
+  is the one the model would have given from the first sample (a replay of the same
+  log knows the model from the start, and says the same). Learned later, the estimate
+  restarts like after a reboot, its output held while it settles: running minutes of
+  samples again would stall the service.
 
 A sample marked ``restart`` (the vehicle rebooted, or came back after an outage) resets
 every estimator through its public API: the old attitude is stale and must not be
@@ -59,6 +64,23 @@ class Estimate:
     initialising: bool = False  # re-converging after a restart: not to be trusted yet
 
 
+#: How much of a (re)started estimate a new model runs again through the rebuilt
+#: estimators: an autopilot's heartbeat (1 Hz) comes within its first second; the
+#: sample cap bounds the memory and the stall of the catch-up at fast IMU rates.
+CATCH_UP_S = 3.0
+CATCH_UP_SAMPLES = 6000
+
+
+@dataclass(slots=True)
+class _Given:
+    """One sample as the estimators were given it (kept to run it again)."""
+
+    sample: ImuSample
+    vel: np.ndarray | None
+    vel_age: float
+    airborne: bool | None
+
+
 class SourcePipeline:
     """All estimators of one source, with a short history of each one's attitude."""
 
@@ -83,6 +105,9 @@ class SourcePipeline:
         self.last_sample: ImuSample | None = None
         self.samples = 0
         self.aided = 0  # samples that carried a velocity measurement
+        self.caught_up = 0  # model changes applied by running the samples again
+        # the samples since the estimate (re)started, while CATCH_UP_* allow; None after
+        self._since_start: list[_Given] | None = []
 
     def _create(self) -> list[estimators.Estimator]:
         # The estimators turn their magnetic-north attitude to true north themselves.
@@ -123,13 +148,34 @@ class SourcePipeline:
                 est.set_imu_delay(delay_s)
 
     def set_model(self, model: str) -> None:
-        """Rebuild the estimators for another vehicle model; the estimate restarts with
-        the next sample (held while it settles)."""
+        """Rebuild the estimators for another vehicle model: caught up on the samples
+        since the estimate started when there are few, else restarted with the next
+        sample (held while it settles)."""
         if model == self.model:
             return
         self.model = model
         self.estimators = self._create()
-        self._restart_pending = True
+        if self._since_start is None:
+            self._restart_pending = True
+            return
+        self._catch_up(self._since_start)
+
+    def _catch_up(self, given: list[_Given]) -> None:
+        """Run the samples given so far through the (new) estimators, with the flight
+        state each came with, and rewrite the history with their attitudes."""
+        for ring in self.history.values():
+            ring.clear()
+        airborne = self.airborne
+        for g in given:
+            if g.airborne != airborne:
+                airborne = g.airborne
+                for est in self.estimators:
+                    est.set_flight_state(airborne)
+            self._update_all(g.sample, g.vel, g.vel_age)
+        if airborne != self.airborne:
+            for est in self.estimators:
+                est.set_flight_state(self.airborne)
+        self.caught_up += 1
 
     @property
     def initialising(self) -> bool:
@@ -143,6 +189,7 @@ class SourcePipeline:
         for ring in self.history.values():
             ring.clear()
         self.restarts += 1
+        self._since_start = []
         self._settle_until = t + self.settle_s
 
     def process(self, sample: ImuSample, vel: np.ndarray | None = None,
@@ -154,13 +201,8 @@ class SourcePipeline:
             self.restart(sample.t)
         if vel is not None:
             self.aided += 1
-        primary_q = None
-        for label, est in zip(self.labels, self.estimators, strict=True):
-            q = est.update(sample.gyr, sample.acc, sample.mag, sample.dt, vel=vel,
-                           vel_age=vel_age)
-            self.history[label].push(sample.t, q)
-            if primary_q is None:
-                primary_q = q
+        self._remember(_Given(sample, vel, vel_age, self.airborne))
+        primary_q = self._update_all(sample, vel, vel_age)
         self.samples += 1
         self.last_sample = sample
         primary = self.estimators[0]
@@ -172,6 +214,28 @@ class SourcePipeline:
                 self._settle_until = None
         return Estimate(self.key, sample.t, sample.time_boot_ms, primary_q, rates,
                         sample.arrival, initialising)
+
+    def _update_all(self, sample: ImuSample, vel: np.ndarray | None,
+                    vel_age: float) -> np.ndarray:
+        """Every estimator on one sample, into its history; the primary's attitude."""
+        primary_q = None
+        for label, est in zip(self.labels, self.estimators, strict=True):
+            q = est.update(sample.gyr, sample.acc, sample.mag, sample.dt, vel=vel,
+                           vel_age=vel_age)
+            self.history[label].push(sample.t, q)
+            if primary_q is None:
+                primary_q = q
+        return primary_q
+
+    def _remember(self, given: _Given) -> None:
+        kept = self._since_start
+        if kept is None:
+            return
+        if len(kept) >= CATCH_UP_SAMPLES or (
+                kept and given.sample.t - kept[0].sample.t > CATCH_UP_S):
+            self._since_start = None  # too late to catch up: a new model restarts
+            return
+        kept.append(given)
 
     def status(self, label: str) -> estimators.EstimatorStatus:
         return self.estimators[self.labels.index(label)].status

@@ -10,6 +10,7 @@ check sometimes failed on.
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -53,12 +54,16 @@ def run(src: SourcePipeline, given: list[ImuSample], model_at: int | None = None
     return out
 
 
-def test_a_model_learned_early_gives_the_estimate_of_a_model_known_from_the_start():
+def test_a_model_learned_early_gives_the_estimate_of_a_model_known_from_the_start(caplog):
     given = samples(2.0)
     known = pipeline(MULTIROTOR)
     expected = run(known, given, airborne_at=150)
     learned = pipeline(UNKNOWN)
-    got = run(learned, given, model_at=100, airborne_at=150)
+    with caplog.at_level(logging.INFO, logger="bridge.estimate.pipeline"):
+        got = run(learned, given, model_at=100, airborne_at=150)
+    assert [r.getMessage() for r in caplog.records] == [
+        "vehicle 1: estimators rebuilt for a multirotor model, caught up on the 100 "
+        "samples so far"]
     assert learned.estimators[0].params.drag == known.estimators[0].params.drag > 0.0
     assert learned.restarts == 0 and learned.caught_up == 1
     assert not learned.initialising  # nothing held: the estimate did not start over
@@ -84,14 +89,16 @@ def test_the_catch_up_gives_each_sample_the_flight_state_it_came_with():
     assert not np.array_equal(np.array(run(wrong, given)[100:]), np.array(got[100:]))
 
 
-def test_a_model_learned_late_restarts_the_estimate_and_holds_it(monkeypatch):
+def test_a_model_learned_late_restarts_the_estimate_and_holds_it(monkeypatch, caplog):
     """Past CATCH_UP_S the samples are no longer kept: the rebuilt estimators start over
     from the next sample, held while they settle."""
     monkeypatch.setattr(P, "CATCH_UP_S", 0.5)
     given = samples(1.5)
     src = pipeline(UNKNOWN)
     run(src, given[:150])
-    src.set_model(MULTIROTOR)
+    with caplog.at_level(logging.INFO, logger="bridge.estimate.pipeline"):
+        src.set_model(MULTIROTOR)
+    assert "multirotor model; the estimate restarts" in caplog.text
     est = src.process(given[150])
     assert src.restarts == 1 and src.caught_up == 0
     assert est.initialising

@@ -28,6 +28,7 @@ estimator has initialised and ``settle_s`` of board time has passed.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 
@@ -39,6 +40,8 @@ from estimators.spec import EstimatorSpec
 from ..vehicle.ingest import ImuSample, SourceKey
 from ..vehicle.model import UNKNOWN, model_defaults
 from ..vehicle.ring import TimeRing
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -157,8 +160,12 @@ class SourcePipeline:
         self.estimators = self._create()
         if self._since_start is None:
             self._restart_pending = True
+            log.info("vehicle %d: estimators rebuilt for a %s model; the estimate restarts",
+                     self.key.sysid, model)
             return
         self._catch_up(self._since_start)
+        log.info("vehicle %d: estimators rebuilt for a %s model, caught up on the %d "
+                 "samples so far", self.key.sysid, model, len(self._since_start))
 
     def _catch_up(self, given: list[_Given]) -> None:
         """Run the samples given so far through the (new) estimators, with the flight

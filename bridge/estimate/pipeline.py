@@ -208,7 +208,7 @@ class SourcePipeline:
             self.restart(sample.t)
         if vel is not None:
             self.aided += 1
-        self._remember(_Given(sample, vel, vel_age, self.airborne))
+        self._remember(sample, vel, vel_age)
         primary_q = self._update_all(sample, vel, vel_age)
         self.samples += 1
         self.last_sample = sample
@@ -234,15 +234,17 @@ class SourcePipeline:
                 primary_q = q
         return primary_q
 
-    def _remember(self, given: _Given) -> None:
+    def _remember(self, sample: ImuSample, vel: np.ndarray | None, vel_age: float) -> None:
+        """Keep the sample for a catch-up (nothing is made once it is too late for one:
+        this runs on every sample)."""
         kept = self._since_start
         if kept is None:
             return
         if len(kept) >= CATCH_UP_SAMPLES or (
-                kept and given.sample.t - kept[0].sample.t > CATCH_UP_S):
+                kept and sample.t - kept[0].sample.t > CATCH_UP_S):
             self._since_start = None  # too late to catch up: a new model restarts
             return
-        kept.append(given)
+        kept.append(_Given(sample, vel, vel_age, self.airborne))
 
     def status(self, label: str) -> estimators.EstimatorStatus:
         return self.estimators[self.labels.index(label)].status

@@ -258,6 +258,9 @@ async def test_model_learned_after_the_first_samples_catches_the_estimate_up():
         assert await wait_until(lambda: src.caught_up == 1)
         assert src.estimators[0].params.drag == MULTIROTOR_DRAG_PER_S
         assert src.restarts == 0 and bridge.output.held.get(1, 0) == 0
+        bridge.publish_status()  # the status tells it, as it tells a restart
+        status = bridge.last_status[1]
+        assert status["model_catch_ups"] == 1 and status["restarts"] == 0
         # the history (the live comparison's) holds the rebuilt estimators' attitudes
         # from the first sample on
         t_hist, _ = src.history[src.labels[0]].snapshot()

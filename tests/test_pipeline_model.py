@@ -115,4 +115,5 @@ def test_the_kept_samples_are_bounded_by_count(monkeypatch, cap):
     src = pipeline(UNKNOWN)
     run(src, samples(1.0))
     src.set_model(MULTIROTOR)
-    assert src.caught_up == 0 and src._restart_pending
+    src.process(samples(1.01)[-1])
+    assert src.caught_up == 0 and src.restarts == 1

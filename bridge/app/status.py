@@ -125,6 +125,7 @@ class StatusReporter:
             "drops": drops, "flags": flags, "link": link, "refused": dict(vehicle.refused),
             "clock_pending": sum(s.clock.pending for s in sources.values()),
             "restarts": src.restarts if src is not None else 0,
+            "model_catch_ups": src.caught_up if src is not None else 0,
             "initialising": src.initialising if src is not None else False,
             "sent": self.output.sent.get(vehicle.sysid, 0),
             "held_initialising": self.output.held.get(vehicle.sysid, 0),

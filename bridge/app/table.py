@@ -191,7 +191,8 @@ def summary(service: BridgeService) -> str:
                      f"drops {drops or 'none'}, flags {flags or 'none'}, "
                      f"link lost {st['link']['lost']}, refused {refused or 'none'}, "
                      f"restarts {st['restarts']} ({st['held_initialising']} estimates "
-                     f"held while initialising)")
+                     f"held while initialising), model catch-ups "
+                     f"{st['model_catch_ups']}")
         lines.extend(vehicle_lines(sysid, st))
         session = st.get("session_vs_truth")
         if session:

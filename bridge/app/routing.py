@@ -145,7 +145,7 @@ class MessageRouter:
         name = msg.param_id if isinstance(msg.param_id, str) else \
             msg.param_id.decode(errors="replace")
         name, value = name.rstrip("\x00"), float(msg.param_value)
-        if vehicle.declination.on_param(name, value):
+        if vehicle.declination.on_param(name, value, time.monotonic()):
             self.pipeline.configure(vehicle.sysid, declination_rad=vehicle.declination.rad)
         if vehicle.imu_delay.on_param(name, value):
             self.pipeline.configure(vehicle.sysid, imu_delay_s=vehicle.imu_delay.seconds)

@@ -7,8 +7,10 @@ are in true north. The declination between them is, in order of preference:
 2. the vehicle's own parameter, read with PARAM_REQUEST_READ: PX4 ``EKF2_MAG_DECL``
    [deg], ArduPilot ``COMPASS_DEC`` [rad]: what the autopilot's own estimator uses
    (both fill it from their World Magnetic Model tables). A value of exactly 0 is the
-   parameters' default before the autopilot has set it, so it is not taken. It is read
-   again each time the vehicle disarms: PX4 saves the declination its EKF learned then;
+   parameters' default before the autopilot has set it, so it is not taken, and it is
+   asked again every ``UNSET_RETRY_S``: ArduPilot sets ``COMPASS_DEC`` once its GPS has
+   a position, seconds after boot, without telling anyone. It is read again each time
+   the vehicle disarms: PX4 saves the declination its EKF learned then;
 3. the World Magnetic Model (``imu.geomag``, WMM2025, today's date) at the vehicle's
    position (GLOBAL_POSITION_INT, GPS_RAW_INT with a fix, or HIL_STATE_QUATERNION),
    computed again when the vehicle has moved more than ``RECOMPUTE_DEG`` of latitude
@@ -42,6 +44,8 @@ PARAMETERS = {mavlink.MAV_AUTOPILOT_PX4: ("EKF2_MAG_DECL", "deg"),
 RECOMPUTE_DEG = 0.5
 #: Consecutive fixes within RECOMPUTE_DEG of each other before a place is used.
 CONFIRM_FIXES = 5
+#: A declination parameter that reads 0 (not set yet) is asked for again this often [s].
+UNSET_RETRY_S = 10.0
 
 
 @dataclass
@@ -62,6 +66,7 @@ class Declination:
     #: repr of the last parameter value refused (warned about once, not per message)
     refused_value: str | None = None
     params_refused: int = 0
+    unset_reported: bool = False  # "is 0 (not set)" logged once, not at every retry
 
     def __post_init__(self) -> None:
         if self.option_deg is not None:
@@ -80,8 +85,9 @@ class Declination:
         """The parameter name to ask for now (first try or a retry), else None."""
         return self.query.to_send(now)
 
-    def on_param(self, name: str, value: float) -> bool:
-        """A PARAM_VALUE from the autopilot; True if the declination changed."""
+    def on_param(self, name: str, value: float, now: float) -> bool:
+        """A PARAM_VALUE from the autopilot (monotonic ``now``); True if the declination
+        changed."""
         if self.param is None or not self.query.answer(name):
             return False
         deg = value if self.param[1] == "deg" else math.degrees(value)
@@ -93,8 +99,11 @@ class Declination:
                             "counted in declination.params_refused)", self.sysid, name, value)
             return False
         if deg == 0.0:
-            log.info("vehicle %d: %s is 0 (not set by the autopilot); not used", self.sysid,
-                     name)
+            if not self.unset_reported:
+                self.unset_reported = True
+                log.info("vehicle %d: %s is 0 (not set by the autopilot yet); not used, "
+                         "asked again every %g s", self.sysid, name, UNSET_RETRY_S)
+            self.query.ask_again(now, UNSET_RETRY_S)
             return False
         return self._set(deg, PARAMETER, name)
 

@@ -2,7 +2,8 @@
 
 A parameter read over a lossy link may go unanswered; it is asked again after
 ``PARAM_TIMEOUT_S``, at most ``PARAM_TRIES`` times, and never again once answered
-(until ``restart``: a reboot or a disarm may have changed it).
+(until ``restart``: a reboot or a disarm may have changed it; or ``ask_again``: an
+answer that says the autopilot has not set it yet).
 """
 
 from __future__ import annotations
@@ -26,6 +27,12 @@ class ParamQuery:
     def restart(self, name: str | None) -> None:
         """Ask for ``name`` from scratch (None: stop asking)."""
         self.name, self.tries, self.sent_at, self.answered = name, 0, -math.inf, False
+
+    def ask_again(self, now: float, after_s: float) -> None:
+        """Ask for the same name once more, ``after_s`` seconds from monotonic ``now``."""
+        if self.name is not None:
+            self.tries, self.answered = 0, False
+            self.sent_at = now + after_s - PARAM_TIMEOUT_S
 
     def to_send(self, now: float) -> str | None:
         """The name to ask for at monotonic ``now`` (first try or a retry), else None."""

@@ -20,7 +20,7 @@ from bridge.vehicle.declination import (
     NONE,
     OPTION,
     PARAMETER,
-    UNSET_RETRY_S,
+    REREAD_S,
     WMM,
     Declination,
 )
@@ -130,15 +130,15 @@ def test_declination_sources_in_order():
         assert not d.on_position(47.397742, 8.545594, 488.0) and d.source == NONE
     assert d.on_position(47.397742, 8.545594, 488.0) and d.source == WMM
     assert not d.on_position(47.3978, 8.5457, 490.0)  # same place: not evaluated again
-    assert d.on_param("COMPASS_DEC", math.radians(2.5), 1.0)  # radians, and it wins
+    assert d.on_param("COMPASS_DEC", math.radians(2.5), 1.0, True)  # radians, and it wins
     assert (d.source, d.deg) == (PARAMETER, pytest.approx(2.5))
     assert not d.on_position(-33.9, 151.2, 0.0)  # the parameter stays
     assert d.param_to_send(5.0) is None  # answered
     p = Declination(2)
     p.plan(px4)
-    assert not p.on_param("EKF2_MAG_DECL", 0.0, 0.0)  # PX4's default before it set it
+    assert not p.on_param("EKF2_MAG_DECL", 0.0, 0.0, False)  # PX4's default before it set it
     assert not p.on_position(0.0, 0.0, 0.0) and p.source == NONE  # the "no fix" place
-    assert not p.on_param("EKF2_MAG_DECL", float("nan"), 0.0)
+    assert not p.on_param("EKF2_MAG_DECL", float("nan"), 0.0, False)
     given = Declination(3, option_deg=-7.0)
     given.plan(px4)
     assert given.param_to_send(0.0) is None  # the user's value needs no question
@@ -147,25 +147,45 @@ def test_declination_sources_in_order():
 
 def test_a_parameter_not_set_yet_is_asked_again_until_the_autopilot_sets_it(caplog):
     """ArduPilot's COMPASS_DEC reads 0 until its GPS has a position, and it sets the
-    value without a PARAM_VALUE: asked again every UNSET_RETRY_S, its own value replaces
+    value without a PARAM_VALUE: asked again every REREAD_S, its own value replaces
     the World Magnetic Model's before the flight, not only at the next disarm."""
     d = Declination(1)
     d.plan(mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
     assert d.param_to_send(0.0) == "COMPASS_DEC"
     with caplog.at_level(logging.INFO, logger="bridge.vehicle.declination"):
-        assert not d.on_param("COMPASS_DEC", 0.0, 0.1)
+        assert not d.on_param("COMPASS_DEC", 0.0, 0.1, True)  # even in the air
         for _ in range(CONFIRM_FIXES):
             d.on_position(-35.3632, 149.1652, 584.0)
         assert d.source == WMM
-        assert d.param_to_send(0.1 + UNSET_RETRY_S - 0.5) is None  # not yet
-        assert d.param_to_send(0.1 + UNSET_RETRY_S) == "COMPASS_DEC"
-        assert not d.on_param("COMPASS_DEC", 0.0, 10.2)  # still not set: later again
-        assert d.param_to_send(10.2 + UNSET_RETRY_S) == "COMPASS_DEC"
+        assert d.param_to_send(0.1 + REREAD_S - 0.5) is None  # not yet
+        assert d.param_to_send(0.1 + REREAD_S) == "COMPASS_DEC"
+        assert not d.on_param("COMPASS_DEC", 0.0, 10.2, True)  # still not set: later again
+        assert d.param_to_send(10.2 + REREAD_S) == "COMPASS_DEC"
     assert caplog.text.count("not set by the autopilot yet") == 1  # said once
-    assert d.on_param("COMPASS_DEC", 0.2233572, 20.3)
+    assert d.on_param("COMPASS_DEC", 0.2233572, 20.3, True)
     assert (d.source, d.deg) == (PARAMETER, pytest.approx(12.797, abs=1e-3))
-    assert d.param_to_send(100.0) is None  # set: no more asking
+    assert d.param_to_send(100.0) is None  # set, and flying: no more asking
     assert d.param_to_send(20.4) is None
+
+
+def test_a_disarmed_vehicles_parameter_is_read_again_until_it_arms():
+    """PX4 fills EKF2_MAG_DECL from its own tables once it has a position and saves it
+    without a PARAM_VALUE (a value saved by an earlier flight, 3.70°, becomes 3.41°
+    on the ground): re-read while disarmed, the flight starts with PX4's value."""
+    d = Declination(2)
+    d.plan(mavlink.MAV_AUTOPILOT_PX4)
+    assert d.param_to_send(0.0) == "EKF2_MAG_DECL"
+    assert d.on_param("EKF2_MAG_DECL", 3.70, 0.1, False)
+    assert d.param_to_send(0.1 + REREAD_S - 0.5) is None
+    assert d.param_to_send(0.1 + REREAD_S) == "EKF2_MAG_DECL"
+    assert d.query.routine  # a re-read: logged at debug (bridge.app.requests)
+    assert d.on_param("EKF2_MAG_DECL", 3.41, 10.2, False)
+    assert (d.source, d.deg) == (PARAMETER, pytest.approx(3.41))
+    assert d.param_to_send(10.2 + REREAD_S) == "EKF2_MAG_DECL"  # still on the ground
+    assert not d.on_param("EKF2_MAG_DECL", 3.41, 20.3, True)  # armed: unchanged, and...
+    assert d.param_to_send(1000.0) is None  # ...not asked again in the air
+    d.plan(mavlink.MAV_AUTOPILOT_PX4)  # the disarm (bridge.app.routing) asks at once
+    assert d.param_to_send(1000.0) == "EKF2_MAG_DECL" and not d.query.routine
 
 
 def test_a_position_flipping_between_two_places_never_moves_the_declination(caplog):
@@ -186,7 +206,7 @@ def test_a_position_flipping_between_two_places_never_moves_the_declination(capl
         d.on_position(-45.0, 170.0, 0.0)
     assert d.deg == pytest.approx(25.5, abs=1.0)
     for _ in range(1000):
-        assert not d.on_param("EKF2_MAG_DECL", float("nan"), 0.0)
+        assert not d.on_param("EKF2_MAG_DECL", float("nan"), 0.0, None)
     assert d.params_refused == 1000 and d.status()["params_refused"] == 1000
     assert len([r for r in caplog.records if "is no declination" in r.getMessage()]) == 1
 

@@ -22,7 +22,7 @@ from sitl_support import (
     stop_all,
 )
 
-from bridge.vehicle.declination import UNSET_RETRY_S
+from bridge.vehicle.declination import REREAD_S
 from hil.sitl import Leg, Link, Sitl, free_udp_port
 from hil.sitl_pilot import ap_guided, ap_land, ap_ready, ap_takeoff, set_rates
 
@@ -56,7 +56,7 @@ def test_arducopter_flight_through_the_bridge(tmp_path):
         # says nothing: the bridge, asking again, flies with ArduPilot's own declination
         before_flight = bridge.wait_for(
             lambda st: st["vehicles"]["1"]["declination"]["source"] == "parameter",
-            UNSET_RETRY_S + 5.0, "ArduPilot's COMPASS_DEC")["vehicles"]["1"]["declination"]
+            REREAD_S + 5.0, "ArduPilot's COMPASS_DEC")["vehicles"]["1"]["declination"]
         ap_takeoff(pilot, TAKEOFF_M)
         ap_guided(pilot, LEGS, TAKEOFF_M)
         ap_land(pilot)

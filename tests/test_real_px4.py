@@ -56,6 +56,9 @@ def test_px4_flight_through_the_bridge(tmp_path):
             bridge.wait_for(lambda st: st["vehicles"].get(str(sysid), {}).get("compare", {})
                             .get("truth"), 10, "a comparison with the truth")
             px4_takeoff(pilot, TAKEOFF_M)
+            in_air = bridge.wait_for(
+                lambda st: st["vehicles"][str(sysid)]["flight_state"].get("armed") is True,
+                5, "the armed vehicle")["vehicles"][str(sysid)]["declination"]
             px4_offboard(pilot, LEGS, TAKEOFF_M)
             px4_land(pilot)
             bridge.wait_for(lambda st: landed_and_disarmed(st, str(sysid)), 10, "the landing")
@@ -84,6 +87,10 @@ def test_px4_flight_through_the_bridge(tmp_path):
     assert imu["below_request"] and "below the 250 Hz asked" in log
     # the declination from PX4's own parameter (as set at start, or as PX4 saved it)
     assert st["declination"]["source"] == "parameter", st["declination"]
+    # PX4 replaced the value set at start (SAVED_DECLINATION_DEG) with its own on the
+    # ground, without a PARAM_VALUE; re-read on the ground and as it armed, the bridge
+    # flew with PX4's value (the one it saved at disarm too)
+    assert in_air["source"] == "parameter" and in_air["deg"] == pytest.approx(decl, abs=0.05)
     assert "EKF2_MAG_DECL" in log
     assert st["aiding"]["source"] == "LOCAL_POSITION_NED" and st["aiding"]["used"] > 200
     # SIH's magnetometer is not calibrated (CAL_MAG0_*OFF are 0) and its raw field agrees
@@ -114,9 +121,9 @@ def test_px4_flight_through_the_bridge(tmp_path):
     # and inclination, and than VQF offline in inclination; offline against offline, the
     # eskf smoothed better than VQF offline in both (online, the heading of a filter that
     # sees the whole flight can be better than ours: 2.15 against 2.31° once in four)
-    # replayed with the declination the bridge had in the air (the record ends with the
-    # one PX4 saved at disarm, which a plain replay takes for the whole session)
-    replayed = replayed_beside_vqf(bridge.record, "PX4", SAVED_DECLINATION_DEG)
+    # replayed with the declination the bridge had in the air (a plain replay takes the
+    # record's last value, the one PX4 saved at disarm, for the whole session)
+    replayed = replayed_beside_vqf(bridge.record, "PX4", in_air["deg"])
     # the live comparison's whole-session numbers are the replay's (sitl_support)
     check_live_session_matches_replay(bridge.vehicle(sysid), replayed)
     online, smoothed = replayed["eskf"], replayed["eskf smoothed"]

@@ -42,15 +42,18 @@ class StreamRequester:
         req = vehicle.negotiation.next_send(now)
         if req is not None:
             self._send_interval(vehicle, req)
-        for name in (vehicle.declination.param_to_send(now),
-                     vehicle.imu_delay.param_to_send(now),
-                     vehicle.px4_mag.param_to_send(now)):
+        # (the declination's routine re-reads on the ground, every 10 s, log at debug)
+        for name, routine in ((vehicle.declination.param_to_send(now),
+                               vehicle.declination.query.routine),
+                              (vehicle.imu_delay.param_to_send(now), False),
+                              (vehicle.px4_mag.param_to_send(now), False)):
             if name is None:
                 continue
             read = mavlink.MAVLink_param_request_read_message(
                 vehicle.sysid, vehicle.autopilot_compid, name.encode(), -1)
             vehicle.link.send_to(read, vehicle.sysid, self.component_id, vehicle.address)
-            log.info("asked vehicle %d for %s", vehicle.sysid, name)
+            log.log(logging.DEBUG if routine else logging.INFO, "asked vehicle %d for %s",
+                    vehicle.sysid, name)
 
     def _send_interval(self, vehicle: Vehicle, req: Request) -> None:
         cmd = mavlink.MAVLink_command_long_message(

@@ -145,7 +145,7 @@ class MessageRouter:
         name = msg.param_id if isinstance(msg.param_id, str) else \
             msg.param_id.decode(errors="replace")
         name, value = name.rstrip("\x00"), float(msg.param_value)
-        if vehicle.declination.on_param(name, value, time.monotonic()):
+        if vehicle.declination.on_param(name, value, time.monotonic(), vehicle.flight.armed):
             self.pipeline.configure(vehicle.sysid, declination_rad=vehicle.declination.rad)
         if vehicle.imu_delay.on_param(name, value):
             self.pipeline.configure(vehicle.sysid, imu_delay_s=vehicle.imu_delay.seconds)
@@ -198,6 +198,10 @@ class MessageRouter:
             # and the gyro filter, which a user may change between flights
             vehicle.declination.plan(vehicle.autopilot)
             self._plan_imu_delay(vehicle, vehicle.autopilot)
+        elif not was_armed and vehicle.flight.armed and vehicle.autopilot is not None:
+            # the flight starts with the declination the autopilot has now (it sets it
+            # on the ground without telling: bridge.vehicle.declination)
+            vehicle.declination.plan(vehicle.autopilot)
         self._flight_state(vehicle)
         if msg.type != vehicle.mav_type:
             if vehicle.mav_type is not None:

@@ -7,10 +7,12 @@ are in true north. The declination between them is, in order of preference:
 2. the vehicle's own parameter, read with PARAM_REQUEST_READ: PX4 ``EKF2_MAG_DECL``
    [deg], ArduPilot ``COMPASS_DEC`` [rad]: what the autopilot's own estimator uses
    (both fill it from their World Magnetic Model tables). A value of exactly 0 is the
-   parameters' default before the autopilot has set it, so it is not taken, and it is
-   asked again every ``UNSET_RETRY_S``: ArduPilot sets ``COMPASS_DEC`` once its GPS has
-   a position, seconds after boot, without telling anyone. It is read again each time
-   the vehicle disarms: PX4 saves the declination its EKF learned then;
+   parameters' default before the autopilot has set it, so it is not taken. Both
+   autopilots fill it in on the ground without telling anyone (no PARAM_VALUE):
+   ArduPilot once its GPS has a position, PX4 from its own tables once it has one, and
+   again when it disarms. So it is asked for again every ``REREAD_S`` while it reads 0
+   or the vehicle is not armed, and as it arms and disarms: the flight starts with the
+   value the autopilot's own estimator uses;
 3. the World Magnetic Model (``imu.geomag``, WMM2025, today's date) at the vehicle's
    position (GLOBAL_POSITION_INT, GPS_RAW_INT with a fix, or HIL_STATE_QUATERNION),
    computed again when the vehicle has moved more than ``RECOMPUTE_DEG`` of latitude
@@ -44,8 +46,9 @@ PARAMETERS = {mavlink.MAV_AUTOPILOT_PX4: ("EKF2_MAG_DECL", "deg"),
 RECOMPUTE_DEG = 0.5
 #: Consecutive fixes within RECOMPUTE_DEG of each other before a place is used.
 CONFIRM_FIXES = 5
-#: A declination parameter that reads 0 (not set yet) is asked for again this often [s].
-UNSET_RETRY_S = 10.0
+#: The declination parameter is asked for again this often while it reads 0 (not set
+#: yet) or the vehicle is not armed [s].
+REREAD_S = 10.0
 
 
 @dataclass
@@ -85,11 +88,13 @@ class Declination:
         """The parameter name to ask for now (first try or a retry), else None."""
         return self.query.to_send(now)
 
-    def on_param(self, name: str, value: float, now: float) -> bool:
-        """A PARAM_VALUE from the autopilot (monotonic ``now``); True if the declination
-        changed."""
+    def on_param(self, name: str, value: float, now: float, armed: bool | None) -> bool:
+        """A PARAM_VALUE from the autopilot (monotonic ``now``; ``armed``: the vehicle's
+        state then, None unknown); True if the declination changed."""
         if self.param is None or not self.query.answer(name):
             return False
+        if armed is not True:  # on the ground the autopilot may still change it
+            self.query.ask_again(now, REREAD_S)
         deg = value if self.param[1] == "deg" else math.degrees(value)
         if not (math.isfinite(deg) and abs(deg) <= 180.0):
             self.params_refused += 1
@@ -102,8 +107,8 @@ class Declination:
             if not self.unset_reported:
                 self.unset_reported = True
                 log.info("vehicle %d: %s is 0 (not set by the autopilot yet); not used, "
-                         "asked again every %g s", self.sysid, name, UNSET_RETRY_S)
-            self.query.ask_again(now, UNSET_RETRY_S)
+                         "asked again every %g s", self.sysid, name, REREAD_S)
+            self.query.ask_again(now, REREAD_S)
             return False
         return self._set(deg, PARAMETER, name)
 

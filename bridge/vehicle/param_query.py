@@ -23,15 +23,17 @@ class ParamQuery:
     tries: int = 0
     sent_at: float = -math.inf
     answered: bool = False
+    routine: bool = False  # an ``ask_again``: worth a debug line, not an info one
 
     def restart(self, name: str | None) -> None:
         """Ask for ``name`` from scratch (None: stop asking)."""
         self.name, self.tries, self.sent_at, self.answered = name, 0, -math.inf, False
+        self.routine = False
 
     def ask_again(self, now: float, after_s: float) -> None:
         """Ask for the same name once more, ``after_s`` seconds from monotonic ``now``."""
         if self.name is not None:
-            self.tries, self.answered = 0, False
+            self.tries, self.answered, self.routine = 0, False, True
             self.sent_at = now + after_s - PARAM_TIMEOUT_S
 
     def to_send(self, now: float) -> str | None:

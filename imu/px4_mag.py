@@ -17,9 +17,9 @@ vehicle with an uncalibrated compass), since a calibration always finds some. Th
 must agree as well: while the vehicle streams both, their mean fields over ``WINDOW_S``
 are compared. A calibration the raw reading lacks (the parameters of another sensor than
 SCALED_IMU's, a calibration made since) is a constant offset in the body frame: it is in
-every window. EKF2's estimate is not: it jumps when EKF2 re-aligns its field and comes
-back, a window at a time (a PX4 SIH flight under load moved HIGHRES_IMU's field by 16 %
-of its strength for one window while the raw field held still). So the offsets of the
+every window. EKF2's estimate is not: it jumps when EKF2 re-aligns its field, for a
+window or two, by as much as a sixth of the field's strength, and comes back while the
+raw field holds still (docs/accuracy.md, "Live flights"). So the offsets of the
 last ``MEMORY_WINDOWS`` windows are averaged, as vectors, and a mean further than
 ``AGREE`` of the field's strength from zero keeps HIGHRES_IMU's for good, and says so:
 a missing calibration shows in the first window already, EKF2's excursions are diluted.
@@ -47,7 +47,8 @@ MIN_READINGS = 20
 AGREE = 0.15
 #: The offsets of this many windows (a minute) are averaged for that judgement: long
 #: enough to dilute one window of EKF2 re-aligning, short enough that an offset that
-#: stays (a calibration made while the bridge runs) is seen within half a minute.
+#: stays (a calibration made while the bridge runs) is seen within a minute (one of
+#: 40 % of the field within half a minute).
 MEMORY_WINDOWS = 12
 #: A raw reading older than this (by arrival) is not used: SCALED_IMU has stopped [s].
 STALE_S = 0.5

@@ -2,8 +2,8 @@
 
 A parameter read over a lossy link may go unanswered; it is asked again after
 ``PARAM_TIMEOUT_S``, at most ``PARAM_TRIES`` times, and never again once answered
-(until ``restart``: a reboot or a disarm may have changed it; or ``ask_again``: an
-answer that says the autopilot has not set it yet).
+(until ``restart``: a reboot, an arming or a disarm may have changed it; or
+``ask_again``: a value the autopilot has not set yet, or may still change).
 """
 
 from __future__ import annotations

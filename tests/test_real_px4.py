@@ -34,8 +34,9 @@ pytestmark = pytest.mark.xdist_group("autopilots")
 
 LEGS = [Leg(3, 6, 0), Leg(3, 6, 180, yaw=40), Leg(3, 5, 90, turn=60), Leg(2)]
 TAKEOFF_M = 2.5  # PX4's default take-off altitude
-#: EKF2_MAG_DECL as a PX4 that has flown at SIH's home (Zurich) has saved it after a
-#: flight (a fresh one has 0, which the bridge does not take as a value)
+#: EKF2_MAG_DECL saved from elsewhere (a fresh PX4 has 0, which the bridge does not
+#: take as a value); PX4 replaces it on the ground with its own table's value at SIH's
+#: home (Zurich, 3.41°) without a PARAM_VALUE, and the bridge must follow
 SAVED_DECLINATION_DEG = 3.7
 
 

@@ -197,11 +197,12 @@ def check_live_session_matches_replay(vehicle: dict, replayed: dict) -> None:
 
     Inclination only: the heading follows the declination, which the live bridge learns
     from the autopilot during the session (the World Magnetic Model at the first
-    position, then the autopilot's parameter, which PX4 and ArduPilot save anew at
-    disarm) and the replay takes, last reported, for all of it; its estimate lives in
-    magnetic north, so that turns only the heading it reports (measured: the two a
-    constant 0.10° apart on an ArduPilot flight, 12.70 against 12.80°). PX4's replay is
-    given the declination of the flight (``replayed_beside_vqf(declination_deg=...)``).
+    position, then the autopilot's parameter, re-read on the ground and as it arms) and
+    the replay takes, last reported, for all of it; its estimate lives in magnetic
+    north, so that turns only the heading it reports (a constant 0.10° on an ArduPilot
+    flight when the live bridge still flew with the WMM's 12.70° against 12.80°). PX4's
+    replay is given the declination of the flight
+    (``replayed_beside_vqf(declination_deg=...)``).
     Both estimate from the same first sample: the model the first heartbeat tells does
     not restart the live estimate but has the rebuilt estimators catch up on the samples
     so far (``bridge.estimate.pipeline.CATCH_UP_S``; a restart a second in, from another

@@ -125,6 +125,9 @@ class SourcePipeline:
         """The vehicle's flight state from the next sample on (eskf's drag model runs
         only while it is airborne; None: the estimator decides from the data)."""
         self.airborne = airborne
+        self._tell_flight_state(airborne)
+
+    def _tell_flight_state(self, airborne: bool | None) -> None:
         for est in self.estimators:
             est.set_flight_state(airborne)
 
@@ -176,12 +179,10 @@ class SourcePipeline:
         for g in given:
             if g.airborne != airborne:
                 airborne = g.airborne
-                for est in self.estimators:
-                    est.set_flight_state(airborne)
+                self._tell_flight_state(airborne)
             self._update_all(g.sample, g.vel, g.vel_age)
         if airborne != self.airborne:
-            for est in self.estimators:
-                est.set_flight_state(self.airborne)
+            self._tell_flight_state(self.airborne)
         self.caught_up += 1
 
     @property

@@ -93,7 +93,7 @@ class Declination:
         state then, None unknown); True if the declination changed."""
         if self.param is None or not self.query.answer(name):
             return False
-        if armed is not True:  # on the ground the autopilot may still change it
+        if armed is not True or value == 0.0:  # not set yet, or may still change
             self.query.ask_again(now, REREAD_S)
         deg = value if self.param[1] == "deg" else math.degrees(value)
         if not (math.isfinite(deg) and abs(deg) <= 180.0):
@@ -108,7 +108,6 @@ class Declination:
                 self.unset_reported = True
                 log.info("vehicle %d: %s is 0 (not set by the autopilot yet); not used, "
                          "asked again every %g s", self.sysid, name, REREAD_S)
-            self.query.ask_again(now, REREAD_S)
             return False
         return self._set(deg, PARAMETER, name)
 

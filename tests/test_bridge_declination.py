@@ -166,6 +166,13 @@ def test_a_parameter_not_set_yet_is_asked_again_until_the_autopilot_sets_it(capl
     assert (d.source, d.deg) == (PARAMETER, pytest.approx(12.797, abs=1e-3))
     assert d.param_to_send(100.0) is None  # set, and flying: no more asking
     assert d.param_to_send(20.4) is None
+    # the autopilot restarts with its parameters reset: said again, the value kept (the
+    # vehicle has not moved) until it sets it again
+    d.plan(mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+    with caplog.at_level(logging.INFO, logger="bridge.vehicle.declination"):
+        assert not d.on_param("COMPASS_DEC", 0.0, 200.0, False)
+    assert caplog.text.count("not set by the autopilot yet") == 2
+    assert (d.source, d.deg) == (PARAMETER, pytest.approx(12.797, abs=1e-3))
 
 
 def test_a_disarmed_vehicles_parameter_is_read_again_until_it_arms():

@@ -69,7 +69,7 @@ class Declination:
     #: repr of the last parameter value refused (warned about once, not per message)
     refused_value: str | None = None
     params_refused: int = 0
-    unset_reported: bool = False  # "is 0 (not set)" logged once, not at every retry
+    unset_reported: bool = False  # "is 0 (not set)" logged once until a set value comes
 
     def __post_init__(self) -> None:
         if self.option_deg is not None:
@@ -109,6 +109,7 @@ class Declination:
                 log.info("vehicle %d: %s is 0 (not set by the autopilot yet); not used, "
                          "asked again every %g s", self.sysid, name, REREAD_S)
             return False
+        self.unset_reported = False  # a 0 after a set value (a reset autopilot) is news
         return self._set(deg, PARAMETER, name)
 
     def on_position(self, lat_deg: float, lon_deg: float, alt_m: float) -> bool:

@@ -526,7 +526,10 @@ def _same_component(rows: list, src: tuple) -> list:
 
 def _params(messages: dict[str, list], src: tuple) -> dict[str, float]:
     """The vehicle's parameters as last reported (PARAM_VALUE), by name: from the whole
-    log, since a ground station downloads them once, often before a reboot."""
+    log, since a ground station downloads them once, often before a reboot. For the
+    declination the last value is also the one flown with: PX4 replaces a saved
+    EKF2_MAG_DECL from its own tables on the ground without a PARAM_VALUE and announces
+    the value its EKF used when it disarms (docs/replay.md, "Declination")."""
     out: dict[str, float] = {}
     for m in messages.get("PARAM_VALUE", []):
         if m.get_srcSystem() == src[0]:

@@ -85,11 +85,10 @@ def shown(page, sysid: int, field: str) -> str:
 def test_page_shows_every_estimator_and_reference_live(bridge, browser):
     url = bridge.web["url"]
     assert url.startswith("http://127.0.0.1:")  # nobody else's business by default
-    context, page = open_page(browser, "about:blank")  # the browser's own tab start-up
-    t0 = time.monotonic()  # is not the page's: time from opening the URL
-    page.goto(url)
-    page.wait_for_selector('section[data-sysid="1"] canvas', timeout=3000)
-    assert time.monotonic() - t0 < 3.0
+    context, page = open_page(browser, url)
+    # the vehicle's section and its plots appear (how fast is a benchmark's question,
+    # benchmarks/web_load.py: this one times nothing)
+    page.wait_for_selector('section[data-sysid="1"] canvas', timeout=30000)
     # one indicator per estimator, the autopilot's own and the truth; the primary marked
     names = page.eval_on_selector_all('section[data-sysid="1"] .indicator',
                                       "els => els.map(e => e.dataset.series)")

@@ -131,6 +131,29 @@ def test_arrival_clock_places_a_message_by_the_imu_sample_before_it():
     assert clock.board_time(305.0 + 599 * 0.004) == pytest.approx(599 * 0.004, abs=1e-9)
 
 
+def test_a_simulator_stalling_between_imu_and_truth_does_not_move_the_truth_ahead():
+    """ArduPilot SITL starved of CPU (a loaded test run) once stopped 0.86 s between an
+    IMU sample and the SIMSTATE after it, its board clock standing still. Placed by the
+    wall time since the IMU sample, that truth lay 0.86 s ahead of where it was sent;
+    the live session scores then took every truth sample before that time as counted
+    (214 fewer than the replay's). It is placed no later than the next sample is due."""
+    clock = ArrivalClock()
+    placed, sent = [], []
+    wall = 100.0
+    for k in range(500):  # 2 s at 250 Hz, each followed by its truth 1 ms later
+        board = 1.0 + k * 0.004
+        wall += 0.004
+        clock.observe(board, wall)
+        stall = 0.86 if k == 200 else 0.0
+        placed.append(clock.board_time(wall + 0.001 + stall))
+        sent.append(board + 0.001)
+        wall += stall  # the samples after the stall come late, their board times do not
+    placed, sent = np.array(placed), np.array(sent)
+    assert np.all(np.diff(placed) > 0.0)  # in the order they were sent
+    assert np.max(np.abs(placed - sent)) <= 0.003 + 1e-9  # within the step to the next
+    assert abs(placed[200] - sent[200]) <= 0.003 + 1e-9
+
+
 def _raw_imu(t_us: int, values: tuple[int, ...]) -> mavlink.MAVLink_raw_imu_message:
     """A RAW_IMU from system 1, component 1, through real MAVLink encoding."""
     sender = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)

@@ -33,6 +33,7 @@ quarter, and the wrapped step agrees with the elapsed local time.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 from itertools import pairwise
@@ -302,23 +303,35 @@ class ArrivalClock:
     at the wall clock's rate: a simulator behind its real-time schedule (PX4 SIH on a
     loaded machine ran at 0.988× here) would otherwise place every truth sample tens of
     milliseconds late, several degrees in a fast turn. A backlog read at once is placed
-    by its order too, not by when the bridge got round to reading it."""
+    by its order too, not by when the bridge got round to reading it.
+
+    The wall time added is at most the IMU stream's last step: a message is never placed
+    past where the next IMU sample is due. A simulator starved of CPU stops between two
+    sends while its board clock stands still (ArduPilot SITL in a loaded test run, once
+    0.86 s between an IMU sample and the truth after it): placed by the wall clock, that
+    truth sample lay most of a second ahead of its IMU sample, was compared with the
+    wrong attitude, and every truth sample after it up to that time counted as scored
+    already."""
 
     def __init__(self) -> None:
         self._board: float | None = None  # newest IMU sample's board time [s]
         self._arrival = 0.0  # when it was read
+        self._step = math.inf  # board time between the last two IMU samples [s]
 
     def observe(self, board_t: float, arrival: float) -> None:
         """An IMU sample; an older one (a second stream's) does not move the clock back."""
         if self._board is None or board_t >= self._board:
+            if self._board is not None and board_t > self._board:
+                self._step = board_t - self._board
             self._board, self._arrival = board_t, arrival
 
     def reset(self) -> None:
         """A new timeline (a reboot, a gap): forget the last sample."""
         self._board = None
+        self._step = math.inf
 
     def board_time(self, arrival: float) -> float | None:
         """Board time of a message read at ``arrival`` (None before any sample)."""
         if self._board is None:
             return None
-        return self._board + max(arrival - self._arrival, 0.0)
+        return self._board + min(max(arrival - self._arrival, 0.0), self._step)

@@ -306,12 +306,11 @@ class ArrivalClock:
     by its order too, not by when the bridge got round to reading it.
 
     The wall time added is at most the IMU stream's last step: a message is never placed
-    past where the next IMU sample is due. A simulator starved of CPU stops between two
-    sends while its board clock stands still (ArduPilot SITL in a loaded test run, once
-    0.86 s between an IMU sample and the truth after it): placed by the wall clock, that
-    truth sample lay most of a second ahead of its IMU sample, was compared with the
-    wrong attitude, and every truth sample after it up to that time counted as scored
-    already."""
+    past where the next IMU sample is due. A simulator starved of CPU can stop between
+    two sends while its board clock stands still; placed by the wall clock, the truth
+    sent after the stop would lie that far ahead of the IMU sample it followed, be
+    compared with the wrong attitude, and make the live session scores take every truth
+    sample before that time as counted already (``bridge.estimate.session``)."""
 
     def __init__(self) -> None:
         self._board: float | None = None  # newest IMU sample's board time [s]

@@ -42,8 +42,10 @@ async def negotiate(autopilot: str, duration_s: float = 6.0, **settings):
 
 
 def warnings_of(caplog) -> list[str]:
-    return [r.getMessage() for r in caplog.records
-            if r.levelno >= logging.WARNING and r.name.startswith("bridge")]
+    """The bridge's warnings about the stream; not "attitudes sent late", which a loaded
+    test machine may cause and which says nothing about the negotiation."""
+    return [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING
+            and r.name.startswith("bridge") and r.name != "bridge.app.lateness"]
 
 
 @async_test

@@ -55,6 +55,7 @@ from ..wire.codec import SigningConfig, load_signing_key
 from ..wire.links import Link, LinkOptions, UdpLink, open_link, parse_url
 from ..wire.mav import MAVLinkMessage
 from .config import BridgeConfig
+from .lateness import LatenessWatch
 from .registry import VehicleRegistry
 from .requests import StreamRequester
 from .routing import MessageRouter
@@ -125,6 +126,7 @@ class BridgeService:
         self.router = MessageRouter(cfg, self.registry, self.samples, self.requester,
                                     self.admission)
         self.watch = StreamWatch(self.ingest, cfg.source_timeout_s)
+        self.lateness = LatenessWatch()
         self.reporter = StatusReporter(cfg, self.link, self.admission, self.registry,
                                        self.ingest, self.pipeline, self.output, self.watch,
                                        self.mqtt)
@@ -309,6 +311,7 @@ class BridgeService:
         self.requester.retry(list(vehicles.values()), now)
         self.registry.evict(now)
         self.watch.check(vehicles, now)
+        self.lateness.check(self.output.take_lateness(), self.cfg.status_period_s, now)
         if self.presence is not None:
             for sysid, vehicle in vehicles.items():
                 if vehicle.last_imu != 0.0:

@@ -130,6 +130,7 @@ class StatusReporter:
             "sent": self.output.sent.get(vehicle.sysid, 0),
             "held_initialising": self.output.held.get(vehicle.sysid, 0),
             "latency_ms": self.output.latency_percentiles_ms(),
+            "sent_late": self.output.sent_late.get(vehicle.sysid, 0),
             **self._comparison(vehicle, src),
             "stream_requests": vehicle.stream_requests,
             "imu_stream": vehicle.negotiation.status(),

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -35,6 +36,21 @@ def euler_zyx(q: np.ndarray) -> tuple[float, float, float]:
     return roll, pitch, yaw
 
 
+#: An attitude sent this long after its IMU sample arrived is late [s]: a consumer takes
+#: ATTITUDE_QUATERNION as the attitude now, and a tenth of a second is several control
+#: periods of a flight controller and a visible lag on a display.
+LATE_S = 0.1
+
+
+@dataclass
+class LateWindow:
+    """Estimates sent over a span of time, how many of them late, the worst latency."""
+
+    sent: int = 0
+    late: int = 0
+    worst_s: float = 0.0
+
+
 class AttitudeOutput:
     """Decimates and sends the primary estimate; measures in->out latency."""
 
@@ -48,6 +64,8 @@ class AttitudeOutput:
         self.held: dict[int, int] = {}  # per sysid: estimates not sent while initialising
         # seconds, IMU datagram arrived (its kernel time over UDP) -> output written
         self.latency = TimeRing(latency_samples, 1)
+        self.sent_late: dict[int, int] = {}  # per sysid: sent LATE_S or more after arrival
+        self._window = LateWindow()  # since the last take_lateness()
 
     def offer(self, est: Estimate) -> bool:
         """Send ``est`` if it is due under the output rate; True if sent."""
@@ -89,7 +107,18 @@ class AttitudeOutput:
         for link in self.links:
             link.send_many(pair, sysid, self.component_id)
         self.sent[sysid] = self.sent.get(sysid, 0) + 1
-        self.latency.push(0.0, np.array([time.perf_counter() - est.arrival]))
+        latency = time.perf_counter() - est.arrival
+        self.latency.push(0.0, np.array([latency]))
+        self._window.sent += 1
+        if latency >= LATE_S:
+            self.sent_late[sysid] = self.sent_late.get(sysid, 0) + 1
+            self._window.late += 1
+            self._window.worst_s = max(self._window.worst_s, latency)
+
+    def take_lateness(self) -> LateWindow:
+        """The estimates sent, and sent late, since the last call."""
+        window, self._window = self._window, LateWindow()
+        return window
 
     def send_heartbeat(self, sysids: Sequence[int]) -> None:
         """One HEARTBEAT per vehicle we speak for, as an onboard controller."""

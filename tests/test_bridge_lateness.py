@@ -94,5 +94,7 @@ def test_a_bridge_stopped_for_a_moment_warns_that_its_attitudes_are_late(tmp_pat
     log = bridge.log()
     assert code == 0, log
     assert late["latency_ms"]["max"] > 0.5e3, late["latency_ms"]
-    assert log.count("WARNING attitudes sent late") == 1, log
-    assert "attitudes on time again" in log, log
+    # (once per episode is the unit test's: a loaded machine may give this bridge one
+    # of its own before the stop, which is then right to say)
+    warned = log.rfind("WARNING attitudes sent late")
+    assert warned >= 0 and "attitudes on time again" in log[warned:], log
